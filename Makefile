@@ -1,0 +1,47 @@
+# Two commands do all set-up on a fresh machine:
+#   make demo   the whole stack on this machine, 16 concurrent LIBERO-Goal episodes, a summary
+#   make test   the default test suite (what CI runs)
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.zetta-installed
+
+.PHONY: setup proto demo up test test-slow test-all bench lint clean
+
+setup: $(STAMP) proto
+
+# One venv with everything; the stamp re-runs the install when pyproject.toml changes.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip uninstall -q -y opencv-python-headless 2>/dev/null || true
+	@command -v redis-server >/dev/null || { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq redis-server; } || true
+	touch $(STAMP)
+
+proto: $(STAMP)
+	$(PY) scripts/gen_proto.py
+
+demo: setup
+	$(VENV)/bin/zetta up --demo
+
+up: setup
+	$(VENV)/bin/zetta up
+
+test: setup
+	$(PY) -m pytest -m "not slow and not gpu" -q
+
+test-slow: setup
+	$(PY) -m pytest -m "slow" -q
+
+test-all: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) bench/bench_rollout.py
+
+lint: setup
+	$(VENV)/bin/buf lint
+
+clean:
+	rm -rf $(VENV) clients/python/zetta/v1

@@ -1,0 +1,221 @@
+"""The `zetta` command line.
+
+  zetta up --demo              start Redis + gateway + 2 env workers + 1 policy worker on loopback,
+                               run 16 concurrent LIBERO-Goal episodes, print a summary, stop
+  zetta up                     start the same stack and keep it up until Ctrl-C
+  zetta demo --gateway ADDR    run the demo against a stack that is already up
+  zetta workers|sessions --gateway ADDR
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from zetta.client import Gateway, SessionGroup
+from zetta.hops import histograms, scrape
+from zetta.v1 import types_pb2
+
+DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
+
+
+@dataclass
+class DemoResult:
+    """What the demo measured."""
+
+    episodes: int
+    successes: int
+    steps: int
+    create_s: float
+    rollout_s: float
+
+    @property
+    def success_rate(self) -> float:
+        """Fraction of successful episodes."""
+        return self.successes / self.episodes if self.episodes else 0.0
+
+    @property
+    def episodes_per_min(self) -> float:
+        """Episodes per minute over the rollout phase (reset to last episode end)."""
+        return 60.0 * self.episodes / self.rollout_s if self.rollout_s > 0 else 0.0
+
+
+async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int) -> DemoResult:
+    """Create ``episodes`` sessions, run one episode in each concurrently, close them."""
+    async with Gateway(address) as gw:
+        t0 = time.perf_counter()
+        sessions = await gw.create_sessions(
+            env_family="libero", n=episodes, env_config={"suite": suite, "task": task}
+        )
+        create_s = time.perf_counter() - t0
+        try:
+            t1 = time.perf_counter()
+            inits = [i % 50 for i in range(episodes)]
+            if mode == "run_episode":
+                summaries = await sessions.run_episode(task=task, seed=list(range(episodes)), init_state_index=inits,
+                                                       max_steps=max_steps)
+                successes = sum(s.success for s in summaries)
+                steps = sum(s.steps for s in summaries)
+            else:
+                successes, steps = await _policy_step_loop(sessions, task, inits, max_steps)
+            rollout_s = time.perf_counter() - t1
+        finally:
+            await sessions.close()
+    return DemoResult(episodes, successes, steps, create_s, rollout_s)
+
+
+async def _policy_step_loop(sessions: SessionGroup, task: str, inits: Sequence[int], max_steps: int) -> tuple[int, int]:
+    """The paper's listing: reset, then policy_step on every running session until all end."""
+    resets = await sessions.reset(task=task, seed=list(range(len(sessions))), init_state_index=list(inits))
+    budget = max_steps or resets[0].max_steps
+    running = list(sessions.ids)
+    successes = 0
+    steps = 0
+    while running:
+        results = await sessions.subset(running).policy_step()
+        still = []
+        for r in results:
+            if r.done or r.episode_step >= budget:
+                successes += r.success
+                steps += r.episode_step
+            else:
+                still.append(r.session_id)
+        running = still
+    return successes, steps
+
+
+def print_hops(metrics_urls: Sequence[str]) -> None:
+    """Per-hop latency from the services' own histograms."""
+    texts = []
+    for url in metrics_urls:
+        try:
+            texts.append(scrape(url))
+        except OSError as exc:
+            print(f"  (could not scrape {url}: {exc})")
+    hops = histograms(texts, "zetta_hop_latency_seconds", ("service", "method"))
+    steps = histograms(texts, "zetta_env_step_duration_seconds", ("family",))
+    print(f"  {'hop':<40} {'calls':>8} {'mean ms':>9} {'p50 ms':>9} {'p99 ms':>9}")
+    for h in hops + [type(s)(f"env_step/{s.name}", s.count, s.mean_ms, s.p50_ms, s.p99_ms) for s in steps]:
+        if h.name.endswith(("OpenSlots", "CreateSessions", "ListWorkers", "ListSessions", "CloseSlots", "CloseSessions")):
+            continue
+        print(f"  {h.name:<40} {h.count:>8} {h.mean_ms:>9.2f} {h.p50_ms:>9.2f} {h.p99_ms:>9.2f}")
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson 95% interval of a success rate."""
+    if n == 0:
+        return (0.0, 0.0)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
+    """Print the demo's summary."""
+    lo, hi = wilson(res.successes, res.episodes)
+    print()
+    print(f"episodes            {res.episodes} concurrent")
+    print(f"success rate        {res.success_rate:.1%} ({res.successes}/{res.episodes}, Wilson 95% {lo:.0%}-{hi:.0%})")
+    print(f"episodes/min        {res.episodes_per_min:.1f} (rollout {res.rollout_s:.1f} s, {res.steps} env steps, "
+          f"{res.steps / max(res.rollout_s, 1e-9):.0f} steps/s)")
+    print(f"session creation    {res.create_s:.1f} s (environments built once per worker and config)")
+    print("per-hop latency (from /metrics):")
+    print_hops(metrics_urls)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from zetta.local_stack import LocalStack
+
+    stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1)
+    print(f"starting redis, gateway, {args.env_workers} env workers x {args.slots} slots, 1 policy worker ...",
+          flush=True)
+    t = time.perf_counter()
+    with stack:
+        print(f"stack up in {time.perf_counter() - t:.1f} s; gateway at {stack.gateway_address}; logs in {stack.workdir}")
+        for svc in stack.services.values():
+            print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
+        if args.demo:
+            res = asyncio.run(run_demo(stack.gateway_address, args.episodes, args.suite, args.task, args.mode,
+                                       args.max_steps))
+            report(res, [s.metrics_url for s in stack.services.values()])
+        else:
+            print("Ctrl-C to stop")
+            try:
+                signal.sigwait({signal.SIGINT, signal.SIGTERM})
+            except KeyboardInterrupt:
+                pass
+        print("stopping ...", flush=True)
+    print("stopped; no process left behind")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    res = asyncio.run(run_demo(args.gateway, args.episodes, args.suite, args.task, args.mode, args.max_steps))
+    report(res, args.metrics or [])
+    return 0
+
+
+def cmd_workers(args: argparse.Namespace) -> int:
+    async def go() -> None:
+        async with Gateway(args.gateway) as gw:
+            for w in await gw.list_workers():
+                state = "alive" if w.alive else "DEAD"
+                print(f"{w.worker_id:<24} {w.address:<22} {state:<6} {w.free_slots}/{w.slots} free  {','.join(w.env_families)}")
+
+    asyncio.run(go())
+    return 0
+
+
+def cmd_sessions(args: argparse.Namespace) -> int:
+    async def go() -> None:
+        async with Gateway(args.gateway) as gw:
+            for s in await gw.list_sessions():
+                state = types_pb2.SessionState.Name(s.state).removeprefix("SESSION_STATE_")
+                print(f"{s.session_id}  {s.env_family:<10} {state:<11} {s.worker_id:<16} {s.reason}")
+
+    asyncio.run(go())
+    return 0
+
+
+def _demo_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--episodes", type=int, default=16, help="concurrent episodes (default 16)")
+    p.add_argument("--suite", default="libero_goal", help="LIBERO suite (default libero_goal)")
+    p.add_argument("--task", default=DEFAULT_TASK, help=f"task name or index (default {DEFAULT_TASK})")
+    p.add_argument("--mode", choices=("policy_step", "run_episode"), default="policy_step",
+                   help="client-driven policy_step loop (default) or whole episodes inside the workers")
+    p.add_argument("--max-steps", type=int, default=0, help="step budget per episode (default: the suite's)")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `zetta` command."""
+    parser = argparse.ArgumentParser(prog="zetta", description="Zetta rollout infrastructure")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    up = sub.add_parser("up", help="run the whole stack on this machine")
+    up.add_argument("--demo", action="store_true", help="run the demo episodes, print a summary and stop")
+    up.add_argument("--env-workers", type=int, default=2)
+    up.add_argument("--slots", type=int, default=8, help="slots per env worker")
+    _demo_args(up)
+    up.set_defaults(func=cmd_up)
+    demo = sub.add_parser("demo", help="run the demo against a running gateway")
+    demo.add_argument("--gateway", default="127.0.0.1:50051")
+    demo.add_argument("--metrics", nargs="*", help="/metrics URLs to read hop latency from")
+    _demo_args(demo)
+    demo.set_defaults(func=cmd_demo)
+    for name, fn in (("workers", cmd_workers), ("sessions", cmd_sessions)):
+        p = sub.add_parser(name, help=f"list {name}")
+        p.add_argument("--gateway", default="127.0.0.1:50051")
+        p.set_defaults(func=fn)
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,460 @@
+"""Async Python SDK over the gateway, shaped like the paper's listing.
+
+    async with zetta.Gateway("127.0.0.1:50051") as gw:
+        sessions = await gw.create_sessions(env_family="libero", n=16, env_config={...})
+        await sessions.reset(task="put_the_bowl_on_the_plate")
+        while not all_done:
+            results = await sessions.policy_step()
+        await sessions.close()
+
+A :class:`SessionGroup` sends one RPC per call for all its sessions. Single :class:`Session`
+handles are batched too, without the caller asking: calls of the same kind and parameters made in
+the same event-loop turn (e.g. from ``asyncio.gather`` over many sessions) leave as one RPC.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import grpc
+import numpy as np
+from google.protobuf import struct_pb2
+
+from zetta.codec import decode, decode_observation, encode
+from zetta.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
+
+_CHANNEL_OPTIONS = [
+    ("grpc.max_send_message_length", 256 * 1024 * 1024),
+    ("grpc.max_receive_message_length", 256 * 1024 * 1024),
+    ("grpc.keepalive_time_ms", 20_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+]
+
+
+class ZettaError(Exception):
+    """A failed call: the gRPC status, its message, and the sessions at fault."""
+
+    def __init__(self, code: grpc.StatusCode, details: str, session_ids: Sequence[str] = (),
+                 retry_after_ms: int | None = None) -> None:
+        super().__init__(f"{code.name}: {details}")
+        self.code = code
+        self.details = details
+        self.session_ids = list(session_ids)
+        self.retry_after_ms = retry_after_ms
+
+    @classmethod
+    def from_rpc(cls, err: grpc.aio.AioRpcError) -> "ZettaError":
+        """Lift the trailing metadata the gateway sets into attributes."""
+        sessions: list[str] = []
+        retry: int | None = None
+        for key, value in err.trailing_metadata() or ():
+            if key == "zetta-failed-sessions":
+                sessions = [s for s in value.split(",") if s]
+            elif key == "retry-after-ms":
+                retry = int(value)
+        return cls(err.code(), err.details() or "", sessions, retry)
+
+
+@dataclass
+class ResetResult:
+    """First observation of a new episode."""
+
+    session_id: str
+    episode_id: str
+    observation: dict[str, np.ndarray]
+    instruction: str
+    max_steps: int
+
+
+@dataclass
+class StepResult:
+    """Outcome of executed actions."""
+
+    session_id: str
+    observation: dict[str, np.ndarray]
+    reward: float
+    terminated: bool
+    truncated: bool
+    success: bool
+    executed_actions: np.ndarray
+    episode_step: int
+    info: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def done(self) -> bool:
+        """The episode is over (terminated or truncated)."""
+        return self.terminated or self.truncated
+
+
+@dataclass
+class EpisodeSummary:
+    """A whole episode run inside a worker."""
+
+    session_id: str
+    episode_id: str
+    steps: int
+    reward: float
+    success: bool
+    stop_reason: str
+    wall_ms: float
+    policy_calls: int
+
+
+def _reset_result(m: types_pb2.ResetResult) -> ResetResult:
+    return ResetResult(m.session_id, m.episode_id, decode_observation(m.observation), m.instruction, m.max_steps)
+
+
+def _step_result(m: types_pb2.StepResult) -> StepResult:
+    return StepResult(
+        session_id=m.session_id,
+        observation=decode_observation(m.observation),
+        reward=m.reward,
+        terminated=m.terminated,
+        truncated=m.truncated,
+        success=m.success,
+        executed_actions=decode(m.executed_actions),
+        episode_step=m.episode_step,
+        info=dict(m.info),
+    )
+
+
+def _summary(m: types_pb2.EpisodeSummary) -> EpisodeSummary:
+    return EpisodeSummary(
+        session_id=m.session_id,
+        episode_id=m.episode_id,
+        steps=m.steps,
+        reward=m.reward,
+        success=m.success,
+        stop_reason=types_pb2.StopReason.Name(m.stop_reason).removeprefix("STOP_REASON_").lower(),
+        wall_ms=m.wall_ms,
+        policy_calls=m.policy_calls,
+    )
+
+
+def _reset_spec(task: str = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> types_pb2.ResetSpec:
+    return types_pb2.ResetSpec(task=str(task), seed=seed, init_state_index=init_state_index, instruction=instruction)
+
+
+def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0, timeout_ms: int = 0) -> types_pb2.PolicySpec:
+    return types_pb2.PolicySpec(model=model, instruction=instruction, execute_steps=execute_steps, timeout_ms=timeout_ms)
+
+
+class Gateway:
+    """A connection to the gateway; one channel, reused by every call and session."""
+
+    def __init__(self, address: str) -> None:
+        self.address = address
+        self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
+        self._batcher = _Batcher(self)
+
+    async def __aenter__(self) -> "Gateway":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def call(self, method: str, request: Any, timeout: float | None = None) -> Any:
+        """Invoke a GatewayService method, raising ZettaError on failure."""
+        try:
+            return await getattr(self._stub, method)(request, timeout=timeout)
+        except grpc.aio.AioRpcError as err:
+            raise ZettaError.from_rpc(err) from None
+
+    async def create_sessions(
+        self,
+        env_family: str,
+        n: int = 1,
+        env_config: Mapping[str, Any] | None = None,
+        lease_seconds: int = 0,
+        keepalive: bool = True,
+    ) -> "SessionGroup":
+        """Create ``n`` sessions (all or none); with keepalive their leases renew until closed."""
+        config = struct_pb2.Struct()
+        config.update(dict(env_config or {}))
+        resp = await self.call(
+            "CreateSessions",
+            gateway_pb2.CreateSessionsRequest(env_family=env_family, env_config=config, lease_seconds=lease_seconds, count=n),
+        )
+        group = SessionGroup(self, list(resp.sessions))
+        if keepalive:
+            group.start_keepalive()
+        return group
+
+    async def list_workers(self) -> list[gateway_pb2.WorkerInfo]:
+        """Env workers and their health."""
+        return list((await self.call("ListWorkers", gateway_pb2.ListWorkersRequest())).workers)
+
+    async def list_sessions(self, env_family: str = "") -> list[types_pb2.SessionInfo]:
+        """Sessions in the registry."""
+        return list((await self.call("ListSessions", gateway_pb2.ListSessionsRequest(env_family=env_family))).sessions)
+
+    async def close(self) -> None:
+        """Close the channel."""
+        await self._channel.close()
+
+
+class SessionGroup:
+    """A batch of sessions; every method is one RPC covering all of them."""
+
+    def __init__(self, gateway: Gateway, infos: Sequence[types_pb2.SessionInfo]) -> None:
+        self.gateway = gateway
+        self.infos = list(infos)
+        self.ids = [i.session_id for i in infos]
+        self._keepalive: asyncio.Task[None] | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __iter__(self) -> Iterator["Session"]:
+        return (Session(self.gateway, sid) for sid in self.ids)
+
+    def __getitem__(self, i: int) -> "Session":
+        return Session(self.gateway, self.ids[i])
+
+    def subset(self, session_ids: Sequence[str]) -> "SessionGroup":
+        """A group over some of these sessions (e.g. those whose episode is still running)."""
+        wanted = set(session_ids)
+        return SessionGroup(self.gateway, [i for i in self.infos if i.session_id in wanted])
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        """Shape of one action."""
+        return tuple(self.infos[0].action_spec.shape)
+
+    def start_keepalive(self) -> None:
+        """Renew the leases at a third of their length until :meth:`close`."""
+        expiry = min((i.lease_expires_unix_ms for i in self.infos), default=0)
+        if not expiry:
+            return
+        import time
+
+        period = max(1.0, (expiry / 1000.0 - time.time()) / 3)
+
+        async def renew() -> None:
+            while True:
+                await asyncio.sleep(period)
+                try:
+                    await self.renew()
+                except ZettaError:
+                    return
+
+        self._keepalive = asyncio.create_task(renew())
+
+    async def reset(
+        self,
+        task: str | int = "",
+        seed: int | Sequence[int] = 0,
+        init_state_index: int | Sequence[int] = 0,
+        instruction: str = "",
+    ) -> list[ResetResult]:
+        """Start episodes; ``seed`` and ``init_state_index`` may be one value or one per session."""
+        seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
+        inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
+        specs = [_reset_spec(str(task), s, i, instruction) for s, i in zip(seeds, inits)]
+        resp = await self.gateway.call("Reset", gateway_pb2.ResetRequest(session_ids=self.ids, specs=specs))
+        return [_reset_result(r) for r in resp.results]
+
+    async def observe(self) -> list[dict[str, np.ndarray]]:
+        """Current observations, without side effects."""
+        resp = await self.gateway.call("Observe", gateway_pb2.ObserveRequest(session_ids=self.ids))
+        return [decode_observation(r.observation) for r in resp.results]
+
+    async def action_step(self, actions: np.ndarray | Sequence[np.ndarray]) -> list[StepResult]:
+        """Execute one action (or chunk) per session."""
+        tensors = [encode(np.asarray(a, dtype=np.float32) if np.asarray(a).dtype == np.float64 else np.asarray(a)) for a in actions]
+        resp = await self.gateway.call("ActionStep", gateway_pb2.ActionStepRequest(session_ids=self.ids, actions=tensors))
+        return [_step_result(r) for r in resp.results]
+
+    async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0,
+                          timeout_ms: int = 0) -> list[StepResult]:
+        """Observe, infer (batched across sessions and workers) and execute, as one call."""
+        resp = await self.gateway.call(
+            "PolicyStep",
+            gateway_pb2.PolicyStepRequest(session_ids=self.ids,
+                                          policy=_policy_spec(model, instruction, execute_steps, timeout_ms)),
+        )
+        return [_step_result(r) for r in resp.results]
+
+    async def policy_infer(self, model: str = "", instruction: str = "", timeout_ms: int = 0) -> list[np.ndarray]:
+        """Action chunks for the current observations, not executed."""
+        resp = await self.gateway.call(
+            "PolicyInfer",
+            gateway_pb2.PolicyInferRequest(session_ids=self.ids, policy=_policy_spec(model, instruction, 0, timeout_ms)),
+        )
+        return [decode(r.actions) for r in resp.results]
+
+    async def run_episode(
+        self,
+        task: str | int | None = None,
+        seed: int | Sequence[int] = 0,
+        init_state_index: int | Sequence[int] = 0,
+        model: str = "",
+        max_steps: int = 0,
+        execute_steps: int = 0,
+    ) -> list[EpisodeSummary]:
+        """Run whole episodes inside the workers (reset first when ``task`` is given)."""
+        specs: list[types_pb2.ResetSpec] = []
+        if task is not None:
+            seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
+            inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
+            specs = [_reset_spec(str(task), s, i) for s, i in zip(seeds, inits)]
+        resp = await self.gateway.call(
+            "RunEpisode",
+            gateway_pb2.RunEpisodeRequest(session_ids=self.ids, specs=specs, policy=_policy_spec(model, "", execute_steps),
+                                          max_steps=max_steps),
+        )
+        return [_summary(s) for s in resp.summaries]
+
+    async def renew(self, lease_seconds: int = 0) -> None:
+        """Push the leases out."""
+        await self.gateway.call("RenewSessions", gateway_pb2.RenewSessionsRequest(session_ids=self.ids,
+                                                                                  lease_seconds=lease_seconds))
+
+    async def close(self) -> None:
+        """Close the sessions (idempotent) and stop renewing their leases."""
+        if self._keepalive is not None:
+            self._keepalive.cancel()
+            self._keepalive = None
+        await self.gateway.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=self.ids))
+
+
+class Session:
+    """One session; its calls are coalesced with concurrent calls on other sessions."""
+
+    def __init__(self, gateway: Gateway, session_id: str) -> None:
+        self.gateway = gateway
+        self.session_id = session_id
+
+    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> ResetResult:
+        """Start an episode."""
+        spec = _reset_spec(str(task), seed, init_state_index, instruction)
+        return _reset_result(await self.gateway._batcher.submit("Reset", self.session_id, spec))
+
+    async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0,
+                          timeout_ms: int = 0) -> StepResult:
+        """Observe, infer and execute."""
+        spec = _policy_spec(model, instruction, execute_steps, timeout_ms)
+        return _step_result(await self.gateway._batcher.submit("PolicyStep", self.session_id, spec))
+
+    async def action_step(self, action: np.ndarray) -> StepResult:
+        """Execute an action or a chunk."""
+        return _step_result(await self.gateway._batcher.submit("ActionStep", self.session_id, encode(np.asarray(action))))
+
+    async def run_episode(self, task: str | int | None = None, seed: int = 0, init_state_index: int = 0,
+                          model: str = "", max_steps: int = 0) -> EpisodeSummary:
+        """Run a whole episode in the worker."""
+        group = SessionGroup(self.gateway, [types_pb2.SessionInfo(session_id=self.session_id)])
+        return (await group.run_episode(task, seed, init_state_index, model, max_steps))[0]
+
+    def stream(self) -> "StepStream":
+        """A bidirectional stream for this session's step loop: one stream instead of a call per step."""
+        return StepStream(self.gateway, self.session_id)
+
+    async def close(self) -> None:
+        """Close this session."""
+        await self.gateway.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=[self.session_id]))
+
+
+class StepStream:
+    """Request/response over one gRPC stream; each call waits for its own answer."""
+
+    def __init__(self, gateway: Gateway, session_id: str) -> None:
+        self.session_id = session_id
+        self._call = gateway._stub.StepStream()
+        self._first = True
+
+    async def _roundtrip(self, req: gateway_pb2.StepStreamRequest) -> gateway_pb2.StepStreamResponse:
+        if self._first:
+            req.session_id = self.session_id
+            self._first = False
+        try:
+            await self._call.write(req)
+            resp = await self._call.read()
+        except grpc.aio.AioRpcError as err:
+            raise ZettaError.from_rpc(err) from None
+        if resp is grpc.aio.EOF:
+            status = await self._call.code()
+            raise ZettaError(status, await self._call.details() or "stream closed")
+        return resp
+
+    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> ResetResult:
+        """Start an episode."""
+        req = gateway_pb2.StepStreamRequest(reset=_reset_spec(str(task), seed, init_state_index, instruction))
+        return _reset_result((await self._roundtrip(req)).reset)
+
+    async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0) -> StepResult:
+        """Observe, infer and execute."""
+        req = gateway_pb2.StepStreamRequest(policy=_policy_spec(model, instruction, execute_steps))
+        return _step_result((await self._roundtrip(req)).step)
+
+    async def action_step(self, action: np.ndarray) -> StepResult:
+        """Execute an action or a chunk."""
+        req = gateway_pb2.StepStreamRequest(action=encode(np.asarray(action)))
+        return _step_result((await self._roundtrip(req)).step)
+
+    async def observe(self) -> dict[str, np.ndarray]:
+        """Current observation."""
+        req = gateway_pb2.StepStreamRequest(observe=gateway_pb2.ObserveOp())
+        return decode_observation((await self._roundtrip(req)).observe.observation)
+
+    async def close(self) -> None:
+        """End the stream."""
+        await self._call.done_writing()
+
+
+class _Batcher:
+    """Coalesces single-session calls of the same kind and parameters made in one loop turn."""
+
+    _REQUESTS = {
+        "Reset": lambda ids, payloads: gateway_pb2.ResetRequest(session_ids=ids, specs=payloads),
+        "ActionStep": lambda ids, payloads: gateway_pb2.ActionStepRequest(session_ids=ids, actions=payloads),
+        "PolicyStep": lambda ids, payloads: gateway_pb2.PolicyStepRequest(session_ids=ids, policy=payloads[0]),
+    }
+    #: Calls whose payload is shared by the whole batch must agree on it to be merged.
+    _SHARED = {"PolicyStep"}
+
+    def __init__(self, gateway: Gateway) -> None:
+        self._gateway = gateway
+        self._pending: dict[tuple[str, bytes], list[tuple[str, Any, asyncio.Future[Any]]]] = {}
+        self._scheduled = False
+
+    async def submit(self, method: str, session_id: str, payload: Any) -> Any:
+        key = (method, payload.SerializeToString() if method in self._SHARED else b"")
+        fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending.setdefault(key, []).append((session_id, payload, fut))
+        if not self._scheduled:
+            self._scheduled = True
+            asyncio.get_running_loop().call_soon(self._flush)
+        return await fut
+
+    def _flush(self) -> None:
+        self._scheduled = False
+        pending, self._pending = self._pending, {}
+        for (method, _), calls in pending.items():
+            asyncio.ensure_future(self._send(method, calls))
+
+    async def _send(self, method: str, calls: list[tuple[str, Any, asyncio.Future[Any]]]) -> None:
+        # A session may appear once per RPC; repeats wait for the next one.
+        first: list[tuple[str, Any, asyncio.Future[Any]]] = []
+        later: list[tuple[str, Any, asyncio.Future[Any]]] = []
+        seen: set[str] = set()
+        for c in calls:
+            (later if c[0] in seen else first).append(c)
+            seen.add(c[0])
+        request = self._REQUESTS[method]([c[0] for c in first], [c[1] for c in first])
+        try:
+            resp = await self._gateway.call(method, request)
+        except ZettaError as exc:
+            for _, _, fut in first:
+                if not fut.done():
+                    fut.set_exception(exc)
+        else:
+            for (_, _, fut), res in zip(first, resp.results):
+                if not fut.done():
+                    fut.set_result(res)
+        if later:
+            await self._send(method, later)

@@ -1,0 +1,93 @@
+"""Turning failures into gRPC statuses a person can act on.
+
+Every error a service returns goes through :class:`ServiceError`, so the status code, the message
+and the trailing metadata (which sessions failed, when to retry) are set in one place.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import grpc
+
+
+class ServiceError(Exception):
+    """An error with its gRPC status code and the sessions it concerns."""
+
+    def __init__(
+        self,
+        code: grpc.StatusCode,
+        message: str,
+        session_ids: Sequence[str] = (),
+        retry_after_ms: int | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.session_ids = list(session_ids)
+        self.retry_after_ms = retry_after_ms
+
+    def trailing_metadata(self) -> tuple[tuple[str, str], ...]:
+        """Machine-readable details: failed sessions and a retry hint."""
+        md: list[tuple[str, str]] = []
+        if self.session_ids:
+            md.append(("zetta-failed-sessions", ",".join(self.session_ids)))
+        if self.retry_after_ms is not None:
+            md.append(("retry-after-ms", str(self.retry_after_ms)))
+        return tuple(md)
+
+    async def abort(self, context: grpc.aio.ServicerContext) -> None:
+        """End the call with this error."""
+        context.set_trailing_metadata(self.trailing_metadata())
+        await context.abort(self.code, self.message)
+
+
+def invalid(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
+    """INVALID_ARGUMENT."""
+    return ServiceError(grpc.StatusCode.INVALID_ARGUMENT, message, session_ids)
+
+
+def not_found(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
+    """NOT_FOUND."""
+    return ServiceError(grpc.StatusCode.NOT_FOUND, message, session_ids)
+
+
+def failed_precondition(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
+    """FAILED_PRECONDITION."""
+    return ServiceError(grpc.StatusCode.FAILED_PRECONDITION, message, session_ids)
+
+
+def exhausted(message: str, retry_after_ms: int) -> ServiceError:
+    """RESOURCE_EXHAUSTED with a retry hint."""
+    return ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED, message, retry_after_ms=retry_after_ms)
+
+
+def unavailable(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
+    """UNAVAILABLE."""
+    return ServiceError(grpc.StatusCode.UNAVAILABLE, message, session_ids)
+
+
+def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
+    """Re-raise a downstream error with context, keeping its code and failed sessions."""
+    sessions: list[str] = []
+    retry: int | None = None
+    for key, value in err.trailing_metadata() or ():
+        if key == "zetta-failed-sessions":
+            sessions = [s for s in value.split(",") if s]
+        elif key == "retry-after-ms":
+            retry = int(value)
+    return ServiceError(err.code(), f"{what}: {err.details()}", sessions, retry)
+
+
+def error_boundary(method):  # type: ignore[no-untyped-def]
+    """Decorator for async servicer methods: a ServiceError becomes its status, nothing else leaks."""
+    import functools
+
+    @functools.wraps(method)
+    async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+        try:
+            return await method(self, request, context)
+        except ServiceError as exc:
+            await exc.abort(context)
+
+    return wrapper

@@ -1,0 +1,29 @@
+"""TensorSpec to and from its proto form."""
+
+from __future__ import annotations
+
+from services.common.specs import TensorSpec
+from zetta.codec import dtype_from_wire, dtype_to_wire
+from zetta.v1 import types_pb2
+
+
+def spec_to_wire(spec: TensorSpec, out: types_pb2.TensorSpec | None = None) -> types_pb2.TensorSpec:
+    """Proto form of a TensorSpec."""
+    msg = out if out is not None else types_pb2.TensorSpec()
+    msg.name = spec.name
+    msg.dtype = dtype_to_wire(spec.dtype)
+    msg.shape[:] = spec.shape
+    msg.privileged = spec.privileged
+    msg.description = spec.description
+    return msg
+
+
+def spec_from_wire(msg: types_pb2.TensorSpec) -> TensorSpec:
+    """TensorSpec of its proto form."""
+    return TensorSpec(
+        name=msg.name,
+        dtype=str(dtype_from_wire(msg.dtype).newbyteorder("=")),
+        shape=tuple(int(d) for d in msg.shape),
+        privileged=msg.privileged,
+        description=msg.description,
+    )

@@ -1,0 +1,67 @@
+"""Env worker settings, read from ZETTA_* environment variables at start-up."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from services.common.config import EnvReader
+
+
+@dataclass(frozen=True)
+class EnvWorkerConfig:
+    """Every knob of an env worker; see docs/configuration.md."""
+
+    host: str
+    port: int
+    metrics_port: int
+    worker_id: str
+    advertise_address: str
+    gateway_address: str
+    policy_addresses: tuple[str, ...]
+    families: tuple[str, ...]
+    slots: int
+    default_policy_timeout_ms: int
+    grace_seconds: float
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
+        """Read and validate; raises ConfigError naming every bad variable."""
+        env = EnvReader(environ)
+        host = env.str("ZETTA_BIND_HOST", "127.0.0.1")
+        port = env.int("ZETTA_ENV_WORKER_PORT", 50061, minimum=0, maximum=65535)
+        policy = tuple(a.strip() for a in env.str("ZETTA_POLICY_ADDRESSES", "").split(",") if a.strip())
+        for addr in policy:
+            if ":" not in addr:
+                env.fail(f"ZETTA_POLICY_ADDRESSES: {addr!r} is not a host:port address")
+        families = tuple(f.strip() for f in env.str("ZETTA_ENV_FAMILIES", "libero,robosuite").split(",") if f.strip())
+        if not families:
+            env.fail("ZETTA_ENV_FAMILIES is empty: name at least one family")
+        cfg = cls(
+            host=host,
+            port=port,
+            metrics_port=env.int("ZETTA_METRICS_PORT", 9102, minimum=-1, maximum=65535),
+            worker_id=env.str("ZETTA_WORKER_ID", ""),
+            advertise_address=env.str("ZETTA_ADVERTISE_ADDRESS", ""),
+            gateway_address=env.address("ZETTA_GATEWAY_ADDRESS", required=True),
+            policy_addresses=policy,
+            families=families,
+            slots=env.int("ZETTA_SLOTS", 8, minimum=1, maximum=1024),
+            default_policy_timeout_ms=env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1),
+            grace_seconds=env.float("ZETTA_GRACE_SECONDS", 10.0, minimum=0.0),
+        )
+        env.finish("env worker")
+        return cfg
+
+    def resolved(self, bound_port: int) -> "EnvWorkerConfig":
+        """Fill the worker id and advertised address once the port is bound."""
+        from dataclasses import replace
+
+        address = self.advertise_address or f"{self.host}:{bound_port}"
+        return replace(
+            self,
+            port=bound_port,
+            advertise_address=address,
+            worker_id=self.worker_id or f"{socket.gethostname()}-{bound_port}",
+        )

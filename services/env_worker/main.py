@@ -1,0 +1,65 @@
+"""Env worker process: `python -m services.env_worker.main` (configuration in ZETTA_* variables)."""
+
+from __future__ import annotations
+
+from services.common.config import ConfigError
+from services.common.logs import setup_logging
+from services.common.server import Registration, ServiceRunner, run_service
+from services.env_worker.config import EnvWorkerConfig
+from services.env_worker.families.base import UnknownFamilyError, get_family
+from services.env_worker.membership import Membership
+from services.env_worker.policy_client import PolicyClient
+from services.env_worker.servicer import EnvWorkerServicer
+from services.env_worker.slots import SlotTable
+from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
+
+
+async def main() -> None:
+    """Serve the slots, register with the gateway, heartbeat; on SIGTERM drain and deregister."""
+    setup_logging("env_worker")
+    cfg = EnvWorkerConfig.from_env()
+    for name in cfg.families:
+        try:
+            get_family(name)
+        except UnknownFamilyError as exc:
+            raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES: {exc}") from None
+    table = SlotTable(cfg.slots, cfg.families)
+    policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms)
+    servicer = EnvWorkerServicer(table, policy)
+    membership: Membership | None = None
+
+    async def drain() -> None:
+        await servicer.wait_idle()
+        if membership is not None:
+            await membership.stop(deregister=True)
+
+    runner = ServiceRunner(
+        name="env_worker",
+        host=cfg.host,
+        port=cfg.port,
+        metrics_port=cfg.metrics_port,
+        registrations=[
+            Registration(
+                env_worker_pb2_grpc.add_EnvWorkerServiceServicer_to_server,
+                servicer,
+                env_worker_pb2.DESCRIPTOR.services_by_name["EnvWorkerService"].full_name,
+            )
+        ],
+        grace_seconds=cfg.grace_seconds,
+        on_drain=drain,
+    )
+    await runner.start()
+    cfg = cfg.resolved(runner.bound_port)
+    servicer.worker_id = cfg.worker_id
+    membership = Membership(cfg, table.session_ids, servicer.close_all)
+    await membership.register()
+    membership.start()
+    try:
+        await runner.run_until_signalled()
+    finally:
+        await policy.close()
+        table.shutdown()
+
+
+if __name__ == "__main__":
+    run_service(main, "env_worker")

@@ -1,0 +1,114 @@
+"""Env worker -> policy worker: one reused channel per policy worker, requests coalesced.
+
+Every inference request a worker's slots make in the same event-loop turn travels in one Infer
+call; the policy worker then batches those with other workers' requests. Observations are cut
+down to the tensors the model reads (learned once from ListModels), so images a state-based
+policy ignores never cross the wire.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import grpc
+
+from services.common import grpc_errors as ge
+from services.common.metrics import HOP_LATENCY
+from services.common.server import CHANNEL_OPTIONS
+from services.env_worker import metrics
+from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc, types_pb2
+
+
+@dataclass
+class _Pending:
+    item: policy_worker_pb2.InferItem
+    future: asyncio.Future[policy_worker_pb2.InferOutput]
+
+
+class PolicyClient:
+    """Sends inference items to the policy workers and routes answers back by token."""
+
+    def __init__(self, addresses: Sequence[str], default_timeout_ms: int) -> None:
+        self._channels = [grpc.aio.insecure_channel(a, options=CHANNEL_OPTIONS) for a in addresses]
+        self._stubs = [policy_worker_pb2_grpc.PolicyWorkerServiceStub(c) for c in self._channels]
+        self._rr = itertools.cycle(range(len(self._stubs))) if self._stubs else None
+        self._pending: list[_Pending] = []
+        self._flush_scheduled = False
+        self._inputs: dict[str, frozenset[str]] = {}
+        self._default_timeout_ms = default_timeout_ms
+        self._hop = HOP_LATENCY.labels("env_worker", "policy_infer")
+
+    async def model_inputs(self, model: str) -> frozenset[str] | None:
+        """Input names of a model (None when the policy workers do not know it)."""
+        if model not in self._inputs and self._stubs:
+            listing = await self._stubs[0].ListModels(policy_worker_pb2.ListModelsRequest(), timeout=10)
+            for m in listing.models:
+                self._inputs[m.name] = frozenset(s.name for s in m.inputs)
+                if m.is_default:
+                    self._inputs[""] = self._inputs[m.name]
+        return self._inputs.get(model)
+
+    async def infer(
+        self, token: str, model: str, observation: types_pb2.Observation, instruction: str, timeout_ms: int
+    ) -> policy_worker_pb2.InferOutput:
+        """One item; it leaves with every other item submitted in the same loop turn."""
+        if not self._stubs:
+            raise ge.failed_precondition(
+                "this env worker has no policy worker configured (set ZETTA_POLICY_ADDRESSES)"
+            )
+        try:
+            wanted = await self.model_inputs(model)
+        except grpc.aio.AioRpcError as err:
+            raise ge.from_rpc_error(err, "policy worker") from None
+        item = policy_worker_pb2.InferItem(
+            token=token, model=model, instruction=instruction, timeout_ms=timeout_ms or self._default_timeout_ms
+        )
+        for name, tensor in observation.tensors.items():
+            if wanted is None or name in wanted:
+                item.observation.tensors[name].CopyFrom(tensor)
+        fut: asyncio.Future[policy_worker_pb2.InferOutput] = asyncio.get_running_loop().create_future()
+        self._pending.append(_Pending(item, fut))
+        if not self._flush_scheduled:
+            self._flush_scheduled = True
+            asyncio.get_running_loop().call_soon(self._flush)
+        return await fut
+
+    def _flush(self) -> None:
+        self._flush_scheduled = False
+        batch, self._pending = self._pending, []
+        if batch:
+            asyncio.ensure_future(self._send(batch))
+
+    async def _send(self, batch: list[_Pending]) -> None:
+        assert self._rr is not None
+        stub = self._stubs[next(self._rr)]
+        budget = max(p.item.timeout_ms for p in batch) / 1000.0 + 1.0
+        start = time.perf_counter()
+        try:
+            resp = await stub.Infer(policy_worker_pb2.InferRequest(items=[p.item for p in batch]), timeout=budget)
+        except grpc.aio.AioRpcError as err:
+            metrics.POLICY_ERRORS.labels(err.code().name).inc()
+            error = ge.from_rpc_error(err, "policy worker")
+            for p in batch:
+                if not p.future.done():
+                    p.future.set_exception(error)
+            return
+        self._hop.observe(time.perf_counter() - start)
+        by_token = {out.token: out for out in resp.outputs}
+        for p in batch:
+            if p.future.done():
+                continue
+            out = by_token.get(p.item.token)
+            if out is None:
+                p.future.set_exception(ge.ServiceError(grpc.StatusCode.INTERNAL, f"no answer for token {p.item.token}"))
+            else:
+                p.future.set_result(out)
+
+    async def close(self) -> None:
+        """Close the channels."""
+        for c in self._channels:
+            await c.close()

@@ -1,0 +1,329 @@
+"""EnvWorkerService: runs resets, steps and whole episodes on the slots of this worker.
+
+A batch is checked whole before anything runs (every session bound, every episode live, every
+action of the right shape), then each session's work runs on its slot's pinned thread, so the
+slots of one call advance side by side while the event loop stays free for other calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Sequence
+
+import grpc
+import numpy as np
+from google.protobuf import json_format
+
+from services.common import grpc_errors as ge
+from services.common.grpc_errors import ServiceError, error_boundary
+from services.common.metrics import HOP_LATENCY
+from services.common.spec_codec import spec_to_wire
+from zetta.codec import TensorDecodeError, decode, encode, encode_observation
+from services.env_worker import metrics
+from services.env_worker.families.base import ResetError, ResetSpec
+from services.env_worker.policy_client import PolicyClient
+from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
+from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
+
+log = logging.getLogger(__name__)
+
+
+def _timed(method: str):  # type: ignore[no-untyped-def]
+    def deco(fn):  # type: ignore[no-untyped-def]
+        hist = HOP_LATENCY.labels("env_worker", method)
+
+        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+            start = time.perf_counter()
+            try:
+                return await fn(self, request, context)
+            finally:
+                hist.observe(time.perf_counter() - start)
+
+        wrapper.__name__ = fn.__name__
+        return error_boundary(wrapper)
+
+    return deco
+
+
+class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
+    """The slots of one worker process."""
+
+    def __init__(self, table: SlotTable, policy: PolicyClient, worker_id: str = "") -> None:
+        self.table = table
+        self.policy = policy
+        self.worker_id = worker_id
+        self._episodes_in_flight = 0
+        self._idle = asyncio.Event()
+        self._idle.set()
+
+    # ---- slot lifecycle -------------------------------------------------------------------
+
+    @_timed("OpenSlots")
+    async def OpenSlots(self, request, context) -> env_worker_pb2.OpenSlotsResponse:  # noqa: N802
+        config = json_format.MessageToDict(request.env_config)
+        family = self.table.group(request.env_family, config)
+        slots = self.table.bind(list(request.session_ids), request.env_family, family)
+        try:
+            await asyncio.gather(*(s.run(self._build, s) for s in slots if s.env is None))
+        except ServiceError:
+            for s in slots:
+                self._close(s.session_id)
+            raise
+        except Exception as exc:  # noqa: BLE001 - a simulator failure is reported, not crashed on
+            for s in slots:
+                self._close(s.session_id)
+            raise ge.ServiceError(
+                grpc.StatusCode.INTERNAL, f"building {request.env_family} environments failed: {exc}"
+            ) from exc
+        resp = env_worker_pb2.OpenSlotsResponse()
+        for spec in family.obs_schema().values():
+            spec_to_wire(spec, resp.observation_schema.add())
+        spec_to_wire(family.action_spec(), resp.action_spec)
+        return resp
+
+    @staticmethod
+    def _build(slot: BoundSlot) -> None:
+        try:
+            slot.env = slot.family.init()
+        except ResetError as exc:
+            raise ge.invalid(str(exc)) from None
+
+    @_timed("CloseSlots")
+    async def CloseSlots(self, request, context) -> env_worker_pb2.CloseSlotsResponse:  # noqa: N802
+        closed = [sid for sid in request.session_ids if self._close(sid)]
+        return env_worker_pb2.CloseSlotsResponse(closed_session_ids=closed)
+
+    def _close(self, session_id: str) -> bool:
+        slot = self.table.release(session_id)
+        if slot is None:
+            return False
+        if slot.env is not None:
+            env = slot.env
+            slot.executor.submit(env.close)
+        return True
+
+    def close_all(self, keep: Sequence[str] = ()) -> list[str]:
+        """Drop every slot not in ``keep`` (after the registry declared them LOST)."""
+        dropped = [sid for sid in self.table.session_ids() if sid not in set(keep)]
+        for sid in dropped:
+            self._close(sid)
+        return dropped
+
+    # ---- episodes ---------------------------------------------------------------------------
+
+    @_timed("ResetSlots")
+    async def ResetSlots(self, request, context) -> env_worker_pb2.ResetSlotsResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        slots = self.table.get(sids)
+        if len(request.specs) != len(sids):
+            raise ge.invalid(f"expected one spec per session ({len(sids)}), got {len(request.specs)}")
+        results = await asyncio.gather(*(s.run(self._reset, s, spec) for s, spec in zip(slots, request.specs)))
+        return env_worker_pb2.ResetSlotsResponse(results=results)
+
+    @staticmethod
+    def _reset(slot: BoundSlot, spec: types_pb2.ResetSpec) -> types_pb2.ResetResult:
+        start = time.perf_counter()
+        if slot.env is None:
+            slot.env = slot.family.init()
+        try:
+            obs, instruction = slot.env.reset(
+                ResetSpec(task=spec.task, seed=spec.seed, init_state_index=spec.init_state_index,
+                          instruction=spec.instruction)
+            )
+        except ResetError as exc:
+            raise ge.invalid(f"reset of session {slot.session_id}: {exc}", [slot.session_id]) from None
+        episode = Episode(
+            episode_id=new_episode_id(),
+            instruction=spec.instruction or instruction,
+            max_steps=slot.family.max_episode_steps(spec.task),
+        )
+        slot.episode = episode
+        slot.last_obs = obs
+        metrics.RESETS.labels(slot.family_name).inc()
+        metrics.RESET_SECONDS.labels(slot.family_name).observe(time.perf_counter() - start)
+        result = types_pb2.ResetResult(
+            session_id=slot.session_id,
+            episode_id=episode.episode_id,
+            instruction=episode.instruction,
+            max_steps=episode.max_steps,
+        )
+        encode_observation(obs, result.observation)
+        return result
+
+    @_timed("ObserveSlots")
+    async def ObserveSlots(self, request, context) -> env_worker_pb2.ObserveSlotsResponse:  # noqa: N802
+        slots = self.table.get(list(request.session_ids))
+        return env_worker_pb2.ObserveSlotsResponse(results=[self._observe(s) for s in slots])
+
+    @staticmethod
+    def _observe(slot: BoundSlot) -> types_pb2.ObserveResult:
+        result = types_pb2.ObserveResult(session_id=slot.session_id)
+        if slot.episode is not None:
+            result.episode_id = slot.episode.episode_id
+            result.episode_step = slot.env.episode_step
+        if slot.last_obs is not None:
+            encode_observation(slot.last_obs, result.observation)
+        return result
+
+    @_timed("StepSlots")
+    async def StepSlots(self, request, context) -> env_worker_pb2.StepSlotsResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        slots = self.table.get(sids)
+        if len(request.actions) != len(sids):
+            raise ge.invalid(f"expected one action per session ({len(sids)}), got {len(request.actions)}")
+        chunks = []
+        for slot, tensor in zip(slots, request.actions):
+            slot.require_episode()
+            try:
+                action = decode(tensor)
+            except TensorDecodeError as exc:
+                raise ge.invalid(f"action of session {slot.session_id}: {exc}", [slot.session_id]) from None
+            chunks.append(action_spec_check(slot.family.action_spec(), action, slot.session_id))
+        results = await asyncio.gather(*(s.run(self._execute, s, c) for s, c in zip(slots, chunks)))
+        return env_worker_pb2.StepSlotsResponse(results=results)
+
+    @staticmethod
+    def _execute(slot: BoundSlot, chunk: np.ndarray) -> types_pb2.StepResult:
+        """Execute a chunk on the slot's thread, stopping at the end of the episode."""
+        episode = slot.episode
+        assert episode is not None
+        env = slot.env
+        family = slot.family_name
+        step_hist = metrics.STEP_SECONDS.labels(family)
+        reward = 0.0
+        executed = 0
+        outcome = None
+        for action in chunk:
+            start = time.perf_counter()
+            outcome = env.step(action)
+            step_hist.observe(time.perf_counter() - start)
+            reward += outcome.reward
+            executed += 1
+            if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
+                break
+        assert outcome is not None
+        metrics.STEPS.labels(family).inc(executed)
+        truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)
+        if outcome.terminated or truncated:
+            episode.ended = True
+            episode.success = outcome.success
+            metrics.EPISODES.labels(family, "success" if outcome.success else "failure").inc()
+        slot.last_obs = outcome.observation
+        result = types_pb2.StepResult(
+            session_id=slot.session_id,
+            reward=reward,
+            terminated=outcome.terminated,
+            truncated=truncated,
+            success=outcome.success,
+            episode_step=env.episode_step,
+            info=outcome.info,
+        )
+        encode(chunk[:executed], result.executed_actions)
+        encode_observation(outcome.observation, result.observation)
+        return result
+
+    # ---- policy ------------------------------------------------------------------------------
+
+    async def _infer(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> np.ndarray:
+        episode = slot.require_episode()
+        assert slot.last_obs is not None
+        obs = encode_observation(slot.last_obs)
+        token = f"{self.worker_id}/{slot.session_id}/{episode.episode_id}/{slot.env.episode_step}"
+        out = await self.policy.infer(token, policy.model, obs, policy.instruction or episode.instruction, policy.timeout_ms)
+        actions = decode(out.actions)
+        return action_spec_check(slot.family.action_spec(), actions, slot.session_id)
+
+    async def _policy_step(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> types_pb2.StepResult:
+        async with slot.busy:
+            chunk = await self._infer(slot, policy)
+            if policy.execute_steps > 0:
+                chunk = chunk[: policy.execute_steps]
+            return await slot.run(self._execute, slot, chunk)
+
+    @_timed("PolicyStepSlots")
+    async def PolicyStepSlots(self, request, context) -> env_worker_pb2.PolicyStepSlotsResponse:  # noqa: N802
+        slots = self.table.get(list(request.session_ids))
+        for s in slots:
+            s.require_episode()
+        results = await asyncio.gather(*(self._policy_step(s, request.policy) for s in slots))
+        return env_worker_pb2.PolicyStepSlotsResponse(results=results)
+
+    @_timed("InferSlots")
+    async def InferSlots(self, request, context) -> env_worker_pb2.InferSlotsResponse:  # noqa: N802
+        slots = self.table.get(list(request.session_ids))
+        for s in slots:
+            s.require_episode()
+        chunks = await asyncio.gather(*(self._infer(s, request.policy) for s in slots))
+        return env_worker_pb2.InferSlotsResponse(
+            results=[
+                types_pb2.InferResult(session_id=s.session_id, actions=encode(c), model=request.policy.model)
+                for s, c in zip(slots, chunks)
+            ]
+        )
+
+    @_timed("RunEpisodes")
+    async def RunEpisodes(self, request, context) -> env_worker_pb2.RunEpisodesResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        slots = self.table.get(sids)
+        if request.specs and len(request.specs) != len(sids):
+            raise ge.invalid(f"expected no spec or one per session ({len(sids)}), got {len(request.specs)}")
+        if not request.specs:
+            for s in slots:
+                s.require_episode()
+        self._episodes_in_flight += 1
+        self._idle.clear()
+        try:
+            summaries = await asyncio.gather(
+                *(
+                    self._run_episode(s, request.specs[i] if request.specs else None, request.policy, request.max_steps)
+                    for i, s in enumerate(slots)
+                )
+            )
+        finally:
+            self._episodes_in_flight -= 1
+            if self._episodes_in_flight == 0:
+                self._idle.set()
+        return env_worker_pb2.RunEpisodesResponse(summaries=summaries)
+
+    async def _run_episode(
+        self, slot: BoundSlot, spec: types_pb2.ResetSpec | None, policy: types_pb2.PolicySpec, max_steps: int
+    ) -> types_pb2.EpisodeSummary:
+        start = time.perf_counter()
+        if spec is not None:
+            await slot.run(self._reset, slot, spec)
+        episode = slot.require_episode()
+        budget = min(max_steps, episode.max_steps) if max_steps > 0 else episode.max_steps
+        first_step = slot.env.episode_step
+        reward = 0.0
+        calls = 0
+        last: types_pb2.StepResult | None = None
+        async with slot.busy:
+            while slot.env.episode_step - first_step < budget and not episode.ended:
+                chunk = await self._infer(slot, policy)
+                calls += 1
+                remaining = budget - (slot.env.episode_step - first_step)
+                n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)
+                last = await slot.run(self._execute, slot, chunk[: min(n, remaining)])
+                reward += last.reward
+        if last is not None and last.success:
+            reason = types_pb2.STOP_REASON_SUCCESS
+        elif last is not None and last.terminated:
+            reason = types_pb2.STOP_REASON_TERMINATED
+        else:
+            reason = types_pb2.STOP_REASON_MAX_STEPS
+        return types_pb2.EpisodeSummary(
+            session_id=slot.session_id,
+            episode_id=episode.episode_id,
+            steps=slot.env.episode_step - first_step,
+            reward=reward,
+            success=bool(last is not None and last.success),
+            stop_reason=reason,
+            wall_ms=(time.perf_counter() - start) * 1000.0,
+            policy_calls=calls,
+        )
+
+    async def wait_idle(self) -> None:
+        """Wait until no RunEpisodes call is in flight (used when draining)."""
+        await self._idle.wait()

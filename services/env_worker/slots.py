@@ -1,0 +1,183 @@
+"""Slots of an env worker: which session holds which environment, on which pinned thread.
+
+Each of the N slots owns one thread for its whole life. Simulator and render contexts are
+thread-bound (a GL context belongs to the thread that made it), and one thread per slot lets
+MuJoCo's GIL-free physics of several slots overlap. Resource-sharing groups (one per family and
+canonical config) are kept here too, so every slot of the same config reuses one compiled model.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import numpy as np
+
+from services.common import grpc_errors as ge
+from services.common.specs import TensorSpec
+from services.env_worker import metrics
+from services.env_worker.families.base import (
+    ConfigError,
+    EnvFamily,
+    UnknownFamilyError,
+    canonical_config_key,
+    get_family,
+)
+
+T = TypeVar("T")
+
+
+@dataclass
+class Episode:
+    """The episode a slot is in: what the policy is told and when it must stop."""
+
+    episode_id: str
+    instruction: str
+    max_steps: int
+    ended: bool = False
+    success: bool = False
+
+
+@dataclass
+class BoundSlot:
+    """A slot bound to a session."""
+
+    session_id: str
+    index: int
+    family: EnvFamily
+    family_name: str
+    executor: ThreadPoolExecutor
+    env: Any = None
+    episode: Episode | None = None
+    last_obs: Mapping[str, np.ndarray] | None = None
+    busy: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn`` on this slot's pinned thread."""
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+
+    def require_episode(self) -> Episode:
+        """The running episode, or the error that tells the client to reset."""
+        if self.episode is None:
+            raise ge.failed_precondition(
+                f"session {self.session_id} has no episode yet; call Reset first", [self.session_id]
+            )
+        if self.episode.ended:
+            how = "success" if self.episode.success else "termination or step budget"
+            raise ge.failed_precondition(
+                f"episode {self.episode.episode_id} of session {self.session_id} ended ({how}); call Reset to start "
+                "another",
+                [self.session_id],
+            )
+        return self.episode
+
+
+class SlotTable:
+    """Binds sessions to slot indices and keeps the resource-sharing groups."""
+
+    def __init__(self, capacity: int, families: Sequence[str]) -> None:
+        self.capacity = capacity
+        self.families = tuple(families)
+        self._executors = [
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"slot-{i}") for i in range(capacity)
+        ]
+        self._free = list(range(capacity - 1, -1, -1))
+        self._bound: dict[str, BoundSlot] = {}
+        self._groups: dict[str, EnvFamily] = {}
+        self._group_lock = threading.Lock()
+        metrics.SLOTS.labels("free").set(capacity)
+        metrics.SLOTS.labels("bound").set(0)
+
+    def group(self, family_name: str, config: Mapping[str, Any]) -> EnvFamily:
+        """The resource-sharing group of a (family, config), created on first use."""
+        if family_name not in self.families:
+            raise ge.invalid(
+                f"env family {family_name!r} is not hosted by this worker; it hosts {', '.join(self.families)}"
+            )
+        try:
+            cls = get_family(family_name)
+            key = canonical_config_key(family_name, config)
+        except UnknownFamilyError as exc:
+            raise ge.invalid(str(exc.args[0] if exc.args else exc)) from None
+        with self._group_lock:
+            fam = self._groups.get(key)
+            if fam is None:
+                try:
+                    fam = cls(config)
+                except ConfigError as exc:
+                    raise ge.invalid(f"env_config for {family_name!r}: {exc}") from None
+                self._groups[key] = fam
+            return fam
+
+    def bind(self, session_ids: Sequence[str], family_name: str, family: EnvFamily) -> list[BoundSlot]:
+        """Reserve a slot per session, all or none."""
+        new = [s for s in session_ids if s not in self._bound]
+        if len(new) > len(self._free):
+            raise ge.exhausted(
+                f"worker has {len(self._free)} free slots, {len(new)} asked", retry_after_ms=1000
+            )
+        out = []
+        for sid in session_ids:
+            if sid in self._bound:
+                out.append(self._bound[sid])
+                continue
+            index = self._free.pop()
+            slot = BoundSlot(sid, index, family, family_name, self._executors[index])
+            self._bound[sid] = slot
+            out.append(slot)
+        self._update_gauges()
+        return out
+
+    def get(self, session_ids: Sequence[str]) -> list[BoundSlot]:
+        """Slots of a batch of sessions, or NOT_FOUND naming the missing ones."""
+        missing = [s for s in session_ids if s not in self._bound]
+        if missing:
+            raise ge.not_found(f"no slot on this worker for session(s) {', '.join(missing)}", missing)
+        return [self._bound[s] for s in session_ids]
+
+    def release(self, session_id: str) -> BoundSlot | None:
+        """Unbind a session; its env goes back to the group for reuse."""
+        slot = self._bound.pop(session_id, None)
+        if slot is not None:
+            self._free.append(slot.index)
+            self._update_gauges()
+        return slot
+
+    def session_ids(self) -> list[str]:
+        """Sessions bound now."""
+        return list(self._bound)
+
+    def shutdown(self) -> None:
+        """Stop the slot threads."""
+        for ex in self._executors:
+            ex.shutdown(wait=False, cancel_futures=True)
+
+    def _update_gauges(self) -> None:
+        metrics.SLOTS.labels("free").set(len(self._free))
+        metrics.SLOTS.labels("bound").set(len(self._bound))
+
+
+def new_episode_id() -> str:
+    """Episode ids are unique across workers and restarts."""
+    return uuid.uuid4().hex
+
+
+def action_spec_check(spec: TensorSpec, action: np.ndarray, session_id: str) -> np.ndarray:
+    """Return the action as a [n, dim] chunk, or INVALID_ARGUMENT if it does not fit the spec."""
+    want = tuple(spec.shape)
+    if action.dtype != np.dtype(spec.dtype):
+        raise ge.invalid(f"action of session {session_id}: expected dtype {spec.dtype}, got {action.dtype}", [session_id])
+    if action.shape == want:
+        return action.reshape((1, *want))
+    if action.ndim == len(want) + 1 and action.shape[1:] == want and action.shape[0] >= 1:
+        return action
+    raise ge.invalid(
+        f"action of session {session_id}: expected shape {list(want)} or [n, {', '.join(map(str, want))}], "
+        f"got {list(action.shape)}",
+        [session_id],
+    )

@@ -1,0 +1,69 @@
+"""Gateway process: `python -m services.gateway.main` (configuration in ZETTA_* variables)."""
+
+from __future__ import annotations
+
+import logging
+
+import redis.asyncio as aioredis
+
+from services.common.config import ConfigError
+from services.common.logs import setup_logging
+from services.common.server import Registration, ServiceRunner, run_service
+from services.gateway.config import GatewayConfig
+from services.gateway.monitor import Monitor
+from services.gateway.registry import Registry
+from services.gateway.registry_servicer import WorkerRegistryServicer
+from services.gateway.servicer import GatewayServicer
+from services.gateway.workers import WorkerPool
+from zetta.v1 import gateway_pb2, gateway_pb2_grpc, registry_pb2, registry_pb2_grpc
+
+
+async def main() -> None:
+    """Connect to Redis (fail fast if it is not there), serve, and run the monitor."""
+    setup_logging("gateway")
+    cfg = GatewayConfig.from_env()
+    client = aioredis.Redis.from_url(cfg.redis_url, socket_timeout=5, socket_connect_timeout=5)
+    try:
+        await client.ping()
+    except Exception as exc:  # noqa: BLE001 - any connection failure is fatal at start-up
+        raise ConfigError(f"gateway: cannot reach Redis at ZETTA_REDIS_URL={cfg.redis_url}: {exc}") from None
+    registry = Registry(client, cfg.redis_prefix, cfg.tombstone_seconds)
+    pool = WorkerPool(registry)
+    gateway = GatewayServicer(registry, pool, cfg)
+    monitor = Monitor(registry, gateway, cfg)
+
+    async def drain() -> None:
+        await monitor.stop()
+
+    runner = ServiceRunner(
+        name="gateway",
+        host=cfg.host,
+        port=cfg.port,
+        metrics_port=cfg.metrics_port,
+        registrations=[
+            Registration(
+                gateway_pb2_grpc.add_GatewayServiceServicer_to_server,
+                gateway,
+                gateway_pb2.DESCRIPTOR.services_by_name["GatewayService"].full_name,
+            ),
+            Registration(
+                registry_pb2_grpc.add_WorkerRegistryServiceServicer_to_server,
+                WorkerRegistryServicer(registry, pool, cfg),
+                registry_pb2.DESCRIPTOR.services_by_name["WorkerRegistryService"].full_name,
+            ),
+        ],
+        grace_seconds=cfg.grace_seconds,
+        on_drain=drain,
+    )
+    await runner.start()
+    monitor.start()
+    logging.getLogger("gateway").info("ready", extra={"fields": {"redis": cfg.redis_url, "prefix": cfg.redis_prefix}})
+    try:
+        await runner.run_until_signalled()
+    finally:
+        await pool.close()
+        await client.aclose()
+
+
+if __name__ == "__main__":
+    run_service(main, "gateway")

@@ -1,0 +1,109 @@
+"""Background duties of the gateway: dead-worker detection, lease expiry, session gauges.
+
+Every gateway replica runs these loops; the Lua scripts they call re-check their condition
+atomically, so two replicas racing on the same worker or lease do the work once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import Counter as Tally
+
+from services.gateway import metrics
+from services.gateway.config import GatewayConfig
+from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, _s, now_ms
+from services.gateway.servicer import GatewayServicer
+
+log = logging.getLogger(__name__)
+
+#: Sessions are counted for the gauges this often, not on every tick: it scans the registry.
+GAUGE_PERIOD_S = 5.0
+
+
+class Monitor:
+    """Runs the periodic checks until stopped."""
+
+    def __init__(self, registry: Registry, gateway: GatewayServicer, config: GatewayConfig) -> None:
+        self.registry = registry
+        self.gateway = gateway
+        self.cfg = config
+        self._task: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        """Start the loop in the background."""
+        self._task = asyncio.create_task(self._run())
+
+    async def stop(self) -> None:
+        """Stop the loop and wait for it."""
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+
+    async def _run(self) -> None:
+        last_gauges = 0.0
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                await self.check_workers()
+                await self.expire_leases()
+                if loop.time() - last_gauges >= GAUGE_PERIOD_S:
+                    await self.update_gauges()
+                    last_gauges = loop.time()
+            except Exception:  # noqa: BLE001 - a Redis hiccup must not end the monitor
+                log.exception("monitor tick failed")
+            await asyncio.sleep(self.cfg.monitor_interval_ms / 1000)
+
+    async def check_workers(self) -> list[str]:
+        """Declare workers without a heartbeat dead; returns the sessions that became LOST."""
+        lost_all: list[str] = []
+        now = now_ms()
+        for w in await self.registry.workers():
+            if w.alive:
+                if now - w.last_hb_ms > 1.5 * self.cfg.heartbeat_interval_ms:
+                    metrics.MISSED_HEARTBEATS.labels(w.worker_id).inc()
+                continue
+            lost = await self.registry.mark_dead(
+                w.worker_id,
+                f"env worker {w.worker_id} missed its heartbeats for {self.cfg.heartbeat_timeout_ms} ms",
+            )
+            if lost is None:
+                continue
+            metrics.WORKERS_DEAD.inc()
+            metrics.SESSIONS_LOST.inc(len(lost))
+            metrics.FREE_SLOTS.labels(w.worker_id).set(0)
+            log.warning("worker declared dead", extra={"fields": {"worker": w.worker_id, "lost_sessions": lost}})
+            lost_all.extend(lost)
+        return lost_all
+
+    async def expire_leases(self) -> list[str]:
+        """Close every session whose lease ran out and free its slot."""
+        expired = await self.registry.expired_leases()
+        if not expired:
+            return []
+        closed, _ = await self.gateway.close_sessions(expired, "lease expired")
+        if closed:
+            metrics.LEASES_EXPIRED.inc(len(closed))
+            log.info("leases expired", extra={"fields": {"sessions": closed}})
+        return closed
+
+    async def update_gauges(self) -> None:
+        """Sessions by family and state, workers by health, free slots per worker."""
+        tally: Tally[tuple[str, str]] = Tally()
+        for sid in await self.registry.all_session_ids():
+            fam, state = await self.registry.r.hmget(f"{self.registry.p}:session:{sid}", "family", "state")
+            if fam is not None and state is not None:
+                tally[(_s(fam), _s(state))] += 1
+        families = {f for f, _ in tally} | {f for w in await self.registry.workers() for f in w.families}
+        for fam in families:
+            for state in (CREATE, RUNNING, TERMINATED, LOST):
+                metrics.SESSIONS.labels(fam, state).set(tally.get((fam, state), 0))
+        workers = await self.registry.workers()
+        metrics.WORKERS.labels("alive").set(sum(w.alive for w in workers))
+        metrics.WORKERS.labels("dead").set(sum(not w.alive for w in workers))
+        for w in workers:
+            metrics.FREE_SLOTS.labels(w.worker_id).set(w.free if w.alive else 0)
+

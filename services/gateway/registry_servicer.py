@@ -1,0 +1,58 @@
+"""WorkerRegistryService: env workers register and heartbeat through the gateway."""
+
+from __future__ import annotations
+
+import logging
+
+from services.common import grpc_errors as ge
+from services.common.grpc_errors import error_boundary
+from services.gateway.config import GatewayConfig
+from services.gateway.registry import Registry
+from services.gateway.workers import WorkerPool
+from zetta.v1 import registry_pb2, registry_pb2_grpc
+
+log = logging.getLogger(__name__)
+
+
+class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
+    """Writes worker records and heartbeat keys; the monitor reads them."""
+
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+        self.registry = registry
+        self.pool = pool
+        self.cfg = config
+
+    @error_boundary
+    async def RegisterWorker(self, request, context) -> registry_pb2.RegisterWorkerResponse:  # noqa: N802
+        if not request.worker_id or not request.address:
+            raise ge.invalid("worker_id and address are required")
+        if request.slots < 1:
+            raise ge.invalid(f"slots must be >= 1, got {request.slots}")
+        if not request.env_families:
+            raise ge.invalid("env_families is empty: a worker must host at least one family")
+        await self.pool.update(request.worker_id, request.address)
+        kept = await self.registry.register_worker(
+            request.worker_id,
+            request.address,
+            list(request.env_families),
+            request.slots,
+            list(request.session_ids),
+            self.cfg.heartbeat_timeout_ms,
+        )
+        log.info(
+            "worker registered",
+            extra={"fields": {"worker": request.worker_id, "address": request.address, "slots": request.slots,
+                              "kept_sessions": len(kept), "held_sessions": len(request.session_ids)}},
+        )
+        return registry_pb2.RegisterWorkerResponse(heartbeat_interval_ms=self.cfg.heartbeat_interval_ms, session_ids=kept)
+
+    @error_boundary
+    async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:  # noqa: N802
+        known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+        return registry_pb2.HeartbeatResponse(known=known)
+
+    @error_boundary
+    async def DeregisterWorker(self, request, context) -> registry_pb2.DeregisterWorkerResponse:  # noqa: N802
+        lost = await self.registry.deregister(request.worker_id)
+        log.info("worker deregistered", extra={"fields": {"worker": request.worker_id, "lost_sessions": len(lost)}})
+        return registry_pb2.DeregisterWorkerResponse()

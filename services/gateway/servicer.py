@@ -1,0 +1,500 @@
+"""GatewayService: validates a batch, finds each session's worker, fans out, reassembles.
+
+Validation happens before any side effect: a batch with one unknown session or one malformed
+action fails whole, and nothing in it runs. The per-worker parts of a valid batch run
+concurrently and their results are put back in request order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from typing import Any, TypeVar
+
+import grpc
+import numpy as np
+from google.protobuf import json_format
+
+from services.common import grpc_errors as ge
+from services.common.grpc_errors import ServiceError, error_boundary
+from services.common.metrics import HOP_LATENCY
+from zetta.codec import TensorDecodeError, dtype_from_wire
+from services.gateway import metrics
+from services.gateway.config import GatewayConfig
+from services.gateway.registry import (
+    CREATE,
+    LOST,
+    RUNNING,
+    TERMINATED,
+    NoWorkerError,
+    PoolFullError,
+    Registry,
+    SessionRecord,
+    _s,
+)
+from services.gateway.workers import WorkerPool
+from zetta.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+_STATE_ENUM = {
+    CREATE: types_pb2.SESSION_STATE_CREATE,
+    RUNNING: types_pb2.SESSION_STATE_RUNNING,
+    TERMINATED: types_pb2.SESSION_STATE_TERMINATED,
+    LOST: types_pb2.SESSION_STATE_LOST,
+}
+#: Most actions one ActionStep may execute per session (a chunk).
+MAX_CHUNK = 256
+
+
+def _timed(method: str):  # type: ignore[no-untyped-def]
+    """Record the gateway hop latency and the status code of every call."""
+
+    def deco(fn):  # type: ignore[no-untyped-def]
+        hist = HOP_LATENCY.labels("gateway", method)
+
+        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+            start = time.perf_counter()
+            code = "OK"
+            try:
+                return await fn(self, request, context)
+            except ServiceError as exc:
+                code = exc.code.name
+                raise
+            finally:
+                hist.observe(time.perf_counter() - start)
+                metrics.REQUESTS.labels(method, code).inc()
+
+        wrapper.__name__ = fn.__name__
+        return error_boundary(wrapper)
+
+    return deco
+
+
+class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
+    """The public API; all state is in the registry, so any number of these can run."""
+
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+        self.registry = registry
+        self.pool = pool
+        self.cfg = config
+
+    # ---- validation and routing -------------------------------------------------------------
+
+    async def _resolve(self, sids: Sequence[str]) -> list[SessionRecord]:
+        """Records of a batch of RUNNING sessions, or the error that names the bad ones."""
+        if not sids:
+            raise ge.invalid("session_ids is empty; pass the ids returned by CreateSessions")
+        if len(set(sids)) != len(sids):
+            dups = sorted({s for s in sids if sids.count(s) > 1})
+            raise ge.invalid(f"session ids appear more than once in one call: {', '.join(dups)}", dups)
+        records = await self.registry.lookup(sids)
+        unknown = [sid for sid, rec in zip(sids, records) if rec is None]
+        if unknown:
+            raise ge.not_found(
+                f"unknown session(s) {', '.join(unknown)}: never created, or closed more than "
+                f"{self.cfg.tombstone_seconds} s ago",
+                unknown,
+            )
+        recs = [r for r in records if r is not None]
+        for state, make in (
+            (LOST, lambda ids, why: ge.failed_precondition(
+                f"session(s) {', '.join(ids)} LOST ({why}); create new sessions to continue", ids)),
+            (TERMINATED, lambda ids, why: ge.not_found(f"session(s) {', '.join(ids)} closed ({why})", ids)),
+            (CREATE, lambda ids, why: ge.failed_precondition(
+                f"session(s) {', '.join(ids)} are still being created; retry when CreateSessions returns", ids)),
+        ):
+            bad = [r for r in recs if r.state == state]
+            if bad:
+                raise make([r.session_id for r in bad], bad[0].reason or state.lower())
+        return recs
+
+    async def _fan_out(
+        self,
+        records: Sequence[SessionRecord],
+        call: Callable[[Any, list[int]], Awaitable[Sequence[T]]],
+    ) -> list[T]:
+        """Run ``call(stub, indices)`` once per worker, concurrently; results in request order."""
+        by_worker: dict[str, list[int]] = {}
+        for i, rec in enumerate(records):
+            by_worker.setdefault(rec.worker_id, []).append(i)
+        stubs = {w: await self.pool.stub(w) for w in by_worker}
+
+        async def one(worker: str, idx: list[int]) -> Sequence[T]:
+            try:
+                return await call(stubs[worker], idx)
+            except grpc.aio.AioRpcError as err:
+                ids = [records[i].session_id for i in idx]
+                if err.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
+                    raise ge.unavailable(
+                        f"env worker {worker} is unreachable ({err.details()}); its sessions become LOST if it "
+                        f"does not heartbeat within {self.cfg.heartbeat_timeout_ms} ms",
+                        ids,
+                    ) from None
+                raise ge.from_rpc_error(err, f"env worker {worker}") from None
+
+        parts = await asyncio.gather(*(one(w, idx) for w, idx in by_worker.items()), return_exceptions=True)
+        errors = [p for p in parts if isinstance(p, BaseException)]
+        if errors:
+            first = errors[0]
+            if isinstance(first, ServiceError) and len(errors) > 1:
+                failed = [s for e in errors if isinstance(e, ServiceError) for s in e.session_ids]
+                first.session_ids = failed
+            raise first
+        out: list[Any] = [None] * len(records)
+        for (worker, idx), part in zip(by_worker.items(), parts):
+            for i, res in zip(idx, part):  # type: ignore[arg-type]
+                out[i] = res
+        return out
+
+    def _specs_for(self, n: int, specs: Sequence[types_pb2.ResetSpec], what: str) -> list[types_pb2.ResetSpec]:
+        if len(specs) == 1:
+            return [specs[0]] * n
+        if len(specs) != n:
+            raise ge.invalid(f"{what}: give one spec for all sessions or one per session ({n}), got {len(specs)}")
+        return list(specs)
+
+    @staticmethod
+    def _timeout(ms: int) -> float:
+        return ms / 1000.0
+
+    # ---- session management ---------------------------------------------------------------
+
+    @_timed("CreateSessions")
+    async def CreateSessions(self, request: gateway_pb2.CreateSessionsRequest, context) -> gateway_pb2.CreateSessionsResponse:  # noqa: N802
+        family = request.env_family.strip()
+        if not family:
+            raise ge.invalid("env_family is empty; name a family such as 'libero' or 'robosuite'")
+        if not 1 <= request.count <= self.cfg.max_sessions_per_call:
+            raise ge.invalid(f"count must be between 1 and {self.cfg.max_sessions_per_call}, got {request.count}")
+        if request.lease_seconds < 0 or request.lease_seconds > self.cfg.max_lease_seconds:
+            raise ge.invalid(f"lease_seconds must be between 0 and {self.cfg.max_lease_seconds}, got {request.lease_seconds}")
+        lease_ms = (request.lease_seconds or self.cfg.default_lease_seconds) * 1000
+        config = json_format.MessageToDict(request.env_config)
+        try:
+            allocated = await self.registry.allocate(family, request.count, lease_ms, config)
+        except NoWorkerError:
+            hosted = sorted({f for w in await self.registry.workers() if w.alive for f in w.families})
+            metrics.REJECTED.labels(family, "unknown_family").inc()
+            raise ge.invalid(
+                f"unknown env family {family!r}: no live worker hosts it; hosted families: {', '.join(hosted) or 'none'}"
+            ) from None
+        except PoolFullError as exc:
+            metrics.REJECTED.labels(family, "pool_full").inc()
+            raise ge.exhausted(
+                f"pool full for family {family!r}: {request.count} sessions asked, {exc.free} slots free; "
+                f"close sessions or retry in {self.cfg.retry_after_ms} ms",
+                self.cfg.retry_after_ms,
+            ) from None
+        by_worker: dict[str, list[str]] = {}
+        for sid, worker in allocated:
+            by_worker.setdefault(worker, []).append(sid)
+
+        async def open_on(worker: str, sids: list[str]) -> env_worker_pb2.OpenSlotsResponse:
+            stub = await self.pool.stub(worker)
+            req = env_worker_pb2.OpenSlotsRequest(session_ids=sids, env_family=family)
+            req.env_config.CopyFrom(request.env_config)
+            return await stub.OpenSlots(req, timeout=self._timeout(self.cfg.create_timeout_ms))
+
+        results = await asyncio.gather(*(open_on(w, s) for w, s in by_worker.items()), return_exceptions=True)
+        failure = next((r for r in results if isinstance(r, BaseException)), None)
+        if failure is not None:
+            await self._abandon(by_worker, results, "creation failed")
+            if isinstance(failure, grpc.aio.AioRpcError):
+                raise ge.from_rpc_error(failure, "cannot create sessions") from None
+            raise failure
+        sessions = []
+        for (worker, sids), opened in zip(by_worker.items(), results):
+            assert isinstance(opened, env_worker_pb2.OpenSlotsResponse)
+            await self.registry.activate(
+                sids,
+                str(dtype_from_wire(opened.action_spec.dtype).newbyteorder("=")),
+                list(opened.action_spec.shape),
+                opened.SerializeToString(),
+            )
+            for sid in sids:
+                info = types_pb2.SessionInfo(
+                    session_id=sid,
+                    env_family=family,
+                    state=types_pb2.SESSION_STATE_RUNNING,
+                    worker_id=worker,
+                    observation_schema=opened.observation_schema,
+                    action_spec=opened.action_spec,
+                )
+                sessions.append((sid, info))
+        expiries = {r.session_id: r.expires_ms for r in await self.registry.lookup([s for s, _ in sessions]) if r}
+        order = {sid: i for i, (sid, _) in enumerate(allocated)}
+        sessions.sort(key=lambda p: order[p[0]])
+        for sid, info in sessions:
+            info.lease_expires_unix_ms = expiries.get(sid, 0)
+        log.info("sessions created", extra={"fields": {"family": family, "count": len(sessions), "workers": list(by_worker)}})
+        return gateway_pb2.CreateSessionsResponse(sessions=[i for _, i in sessions])
+
+    async def _abandon(self, by_worker: dict[str, list[str]], results: Sequence[Any], reason: str) -> None:
+        """Undo a partly failed creation: free every slot and close the ones that opened."""
+        for (worker, sids), res in zip(by_worker.items(), results):
+            for sid in sids:
+                await self.registry.release(sid, TERMINATED, reason)
+            if not isinstance(res, BaseException):
+                try:
+                    stub = await self.pool.stub(worker)
+                    await stub.CloseSlots(env_worker_pb2.CloseSlotsRequest(session_ids=sids), timeout=10)
+                except (grpc.aio.AioRpcError, ServiceError):
+                    log.warning("could not close slots after a failed creation", extra={"fields": {"worker": worker}})
+
+    @_timed("RenewSessions")
+    async def RenewSessions(self, request, context) -> gateway_pb2.RenewSessionsResponse:  # noqa: N802
+        records = await self._resolve(list(request.session_ids))
+        if request.lease_seconds < 0 or request.lease_seconds > self.cfg.max_lease_seconds:
+            raise ge.invalid(f"lease_seconds must be between 0 and {self.cfg.max_lease_seconds}, got {request.lease_seconds}")
+        out = []
+        for rec in records:
+            ok, detail = await self.registry.renew(rec.session_id, request.lease_seconds * 1000)
+            if not ok:
+                raise ge.not_found(f"session {rec.session_id} closed while renewing ({detail})", [rec.session_id])
+            out.append(
+                types_pb2.SessionInfo(
+                    session_id=rec.session_id,
+                    env_family=rec.family,
+                    state=types_pb2.SESSION_STATE_RUNNING,
+                    worker_id=rec.worker_id,
+                    lease_expires_unix_ms=int(detail),
+                )
+            )
+        return gateway_pb2.RenewSessionsResponse(sessions=out)
+
+    @_timed("CloseSessions")
+    async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:  # noqa: N802
+        closed, already = await self.close_sessions(list(dict.fromkeys(request.session_ids)), "closed by client")
+        return gateway_pb2.CloseSessionsResponse(closed_session_ids=closed, already_closed_session_ids=already)
+
+    async def close_sessions(self, sids: Sequence[str], reason: str) -> tuple[list[str], list[str]]:
+        """Free slots in the registry first (the source of truth), then tell the workers."""
+        closed: list[str] = []
+        already: list[str] = []
+        by_worker: dict[str, list[str]] = {}
+        for sid in sids:
+            changed, worker = await self.registry.release(sid, TERMINATED, reason)
+            if changed:
+                closed.append(sid)
+                by_worker.setdefault(worker, []).append(sid)
+            else:
+                already.append(sid)
+        for worker, ids in by_worker.items():
+            try:
+                stub = await self.pool.stub(worker)
+                await stub.CloseSlots(env_worker_pb2.CloseSlotsRequest(session_ids=ids), timeout=10)
+            except (grpc.aio.AioRpcError, ServiceError) as exc:
+                log.warning("worker did not confirm slot close", extra={"fields": {"worker": worker, "error": str(exc)}})
+        return closed, already
+
+    # ---- environment control ----------------------------------------------------------------
+
+    @_timed("Reset")
+    async def Reset(self, request, context) -> gateway_pb2.ResetResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+        specs = self._specs_for(len(sids), request.specs or [types_pb2.ResetSpec()], "specs")
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.ResetSlotsRequest(
+                session_ids=[sids[i] for i in idx], specs=[specs[i] for i in idx]
+            )
+            return (await stub.ResetSlots(req, timeout=self._timeout(self.cfg.reset_timeout_ms))).results
+
+        return gateway_pb2.ResetResponse(results=await self._fan_out(records, call))
+
+    @_timed("Observe")
+    async def Observe(self, request, context) -> gateway_pb2.ObserveResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.ObserveSlotsRequest(session_ids=[sids[i] for i in idx])
+            return (await stub.ObserveSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.ObserveResponse(results=await self._fan_out(records, call))
+
+    def _check_actions(self, records: Sequence[SessionRecord], actions: Sequence[types_pb2.Tensor]) -> None:
+        if len(actions) != len(records):
+            raise ge.invalid(f"actions: expected one per session ({len(records)}), got {len(actions)}")
+        for rec, action in zip(records, actions):
+            try:
+                dtype = dtype_from_wire(action.dtype)
+            except TensorDecodeError as exc:
+                raise ge.invalid(f"action of session {rec.session_id}: {exc}", [rec.session_id]) from None
+            want = rec.action_shape
+            shape = tuple(action.shape)
+            if str(dtype.newbyteorder("=")) != rec.action_dtype:
+                raise ge.invalid(
+                    f"action of session {rec.session_id}: expected dtype {rec.action_dtype}, got {dtype.newbyteorder('=')}",
+                    [rec.session_id],
+                )
+            if shape != want and not (len(shape) == len(want) + 1 and shape[1:] == want and 1 <= shape[0] <= MAX_CHUNK):
+                raise ge.invalid(
+                    f"action of session {rec.session_id}: expected shape {list(want)} (or [n, {', '.join(map(str, want))}] "
+                    f"for a chunk of n <= {MAX_CHUNK}), got {list(shape)}",
+                    [rec.session_id],
+                )
+            if len(action.data) != int(np.prod(shape)) * dtype.itemsize:
+                raise ge.invalid(
+                    f"action of session {rec.session_id}: {len(action.data)} bytes do not match shape {list(shape)}",
+                    [rec.session_id],
+                )
+
+    @_timed("ActionStep")
+    async def ActionStep(self, request, context) -> gateway_pb2.ActionStepResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+        self._check_actions(records, request.actions)
+        actions = list(request.actions)
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.StepSlotsRequest(session_ids=[sids[i] for i in idx], actions=[actions[i] for i in idx])
+            return (await stub.StepSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.ActionStepResponse(results=await self._fan_out(records, call))
+
+    # ---- policy execution -----------------------------------------------------------------
+
+    @_timed("PolicyStep")
+    async def PolicyStep(self, request, context) -> gateway_pb2.PolicyStepResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
+            return (await stub.PolicyStepSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.PolicyStepResponse(results=await self._fan_out(records, call))
+
+    @_timed("PolicyInfer")
+    async def PolicyInfer(self, request, context) -> gateway_pb2.PolicyInferResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.InferSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
+            return (await stub.InferSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.PolicyInferResponse(results=await self._fan_out(records, call))
+
+    @_timed("RunEpisode")
+    async def RunEpisode(self, request, context) -> gateway_pb2.RunEpisodeResponse:  # noqa: N802
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+        specs = self._specs_for(len(sids), request.specs, "specs") if request.specs else []
+        if request.max_steps < 0:
+            raise ge.invalid(f"max_steps must be >= 0, got {request.max_steps}")
+
+        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+            req = env_worker_pb2.RunEpisodesRequest(
+                session_ids=[sids[i] for i in idx],
+                specs=[specs[i] for i in idx] if specs else [],
+                policy=request.policy,
+                max_steps=request.max_steps,
+            )
+            return (await stub.RunEpisodes(req, timeout=self._timeout(self.cfg.episode_timeout_ms))).summaries
+
+        return gateway_pb2.RunEpisodeResponse(summaries=await self._fan_out(records, call))
+
+    async def StepStream(self, request_iterator, context):  # noqa: N802
+        """One stream per session; every message is checked against the registry like a call."""
+        bound = ""
+        hist = HOP_LATENCY.labels("gateway", "StepStream")
+        try:
+            async for req in request_iterator:
+                start = time.perf_counter()
+                sid = req.session_id or bound
+                if not sid:
+                    raise ge.invalid("the first StepStream message must name session_id")
+                if bound and sid != bound:
+                    raise ge.invalid(f"this stream drives session {bound}; open another stream for {sid}")
+                bound = sid
+                records = await self._resolve([sid])
+                stub = await self.pool.stub(records[0].worker_id)
+                op = req.WhichOneof("op")
+                try:
+                    if op == "reset":
+                        res = await stub.ResetSlots(
+                            env_worker_pb2.ResetSlotsRequest(session_ids=[sid], specs=[req.reset]),
+                            timeout=self._timeout(self.cfg.reset_timeout_ms),
+                        )
+                        yield gateway_pb2.StepStreamResponse(reset=res.results[0])
+                    elif op == "action":
+                        self._check_actions(records, [req.action])
+                        res = await stub.StepSlots(
+                            env_worker_pb2.StepSlotsRequest(session_ids=[sid], actions=[req.action]),
+                            timeout=self._timeout(self.cfg.step_timeout_ms),
+                        )
+                        yield gateway_pb2.StepStreamResponse(step=res.results[0])
+                    elif op == "policy":
+                        res = await stub.PolicyStepSlots(
+                            env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sid], policy=req.policy),
+                            timeout=self._timeout(self.cfg.step_timeout_ms),
+                        )
+                        yield gateway_pb2.StepStreamResponse(step=res.results[0])
+                    elif op == "observe":
+                        res = await stub.ObserveSlots(
+                            env_worker_pb2.ObserveSlotsRequest(session_ids=[sid]),
+                            timeout=self._timeout(self.cfg.step_timeout_ms),
+                        )
+                        yield gateway_pb2.StepStreamResponse(observe=res.results[0])
+                    else:
+                        raise ge.invalid("StepStream message has no operation: set reset, action, policy or observe")
+                except grpc.aio.AioRpcError as err:
+                    raise ge.from_rpc_error(err, f"env worker {records[0].worker_id}") from None
+                hist.observe(time.perf_counter() - start)
+        except ServiceError as exc:
+            metrics.REQUESTS.labels("StepStream", exc.code.name).inc()
+            await exc.abort(context)
+
+    # ---- introspection ----------------------------------------------------------------------
+
+    @_timed("ListSessions")
+    async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:  # noqa: N802
+        wanted = {s for s in request.states}
+        out = []
+        for sid in await self.registry.all_session_ids():
+            h = {k.decode(): v for k, v in (await self.registry.session_hash(sid)).items()}
+            if not h:
+                continue
+            state = _STATE_ENUM.get(_s(h.get("state", b"")), types_pb2.SESSION_STATE_UNSPECIFIED)
+            family = _s(h.get("family", b""))
+            if (request.env_family and family != request.env_family) or (wanted and state not in wanted):
+                continue
+            info = types_pb2.SessionInfo(
+                session_id=sid,
+                env_family=family,
+                state=state,
+                worker_id=_s(h.get("worker", b"")),
+                lease_expires_unix_ms=int(_s(h.get("expires_ms", b"0")) or 0),
+                reason=_s(h.get("reason", b"")),
+            )
+            if h.get("schema"):
+                opened = env_worker_pb2.OpenSlotsResponse.FromString(h["schema"])
+                info.observation_schema.extend(opened.observation_schema)
+                info.action_spec.CopyFrom(opened.action_spec)
+            out.append(info)
+        return gateway_pb2.ListSessionsResponse(sessions=out)
+
+    @_timed("ListWorkers")
+    async def ListWorkers(self, request, context) -> gateway_pb2.ListWorkersResponse:  # noqa: N802
+        return gateway_pb2.ListWorkersResponse(
+            workers=[
+                gateway_pb2.WorkerInfo(
+                    worker_id=w.worker_id,
+                    address=w.address,
+                    env_families=w.families,
+                    slots=w.slots,
+                    free_slots=w.free,
+                    alive=w.alive,
+                    last_heartbeat_unix_ms=w.last_hb_ms,
+                )
+                for w in await self.registry.workers()
+            ]
+        )
+

@@ -1,0 +1,50 @@
+"""Policy worker process: `python -m services.policy_worker.main` (configuration in ZETTA_* variables)."""
+
+from __future__ import annotations
+
+import logging
+
+from services.common.logs import setup_logging
+from services.common.server import Registration, ServiceRunner, run_service
+from services.policy_worker.config import PolicyWorkerConfig
+from services.policy_worker.metrics import PrometheusObserver
+from services.policy_worker.models.base import load_model
+from services.policy_worker.scheduler import BatchScheduler
+from services.policy_worker.servicer import PolicyWorkerServicer
+from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+
+
+async def main() -> None:
+    """Load the models, serve them through one scheduler, drain the queue on SIGTERM."""
+    setup_logging("policy_worker")
+    cfg = PolicyWorkerConfig.from_env()
+    models = {name: load_model(name) for name in cfg.models}
+    for name, model in models.items():
+        model.name = name
+    scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler,
+                               PrometheusObserver())
+    servicer = PolicyWorkerServicer(models, cfg.models[0], scheduler, cfg.default_timeout_ms)
+    runner = ServiceRunner(
+        name="policy_worker",
+        host=cfg.host,
+        port=cfg.port,
+        metrics_port=cfg.metrics_port,
+        registrations=[
+            Registration(
+                policy_worker_pb2_grpc.add_PolicyWorkerServiceServicer_to_server,
+                servicer,
+                policy_worker_pb2.DESCRIPTOR.services_by_name["PolicyWorkerService"].full_name,
+            )
+        ],
+        grace_seconds=cfg.grace_seconds,
+        on_drain=scheduler.drain,
+    )
+    await runner.start()
+    logging.getLogger("policy_worker").info(
+        "models loaded", extra={"fields": {"models": list(models), "scheduler": cfg.scheduler.__dict__}}
+    )
+    await runner.run_until_signalled()
+
+
+if __name__ == "__main__":
+    run_service(main, "policy_worker")

@@ -1,0 +1,57 @@
+"""What a served model must provide, and the table of models a worker can load by name.
+
+The scheduler and the server only see this interface, so a user's own policy (an openpi or
+LeRobot checkpoint behind an adapter) plugs in by adding a factory, without touching batching.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import numpy as np
+
+from services.common.specs import TensorSpec
+
+
+class PolicyModel(Protocol):
+    """A batched policy: stacked named inputs and instructions in, action chunks out."""
+
+    name: str
+    chunk_size: int
+
+    def input_specs(self) -> Sequence[TensorSpec]:
+        """Tensors the model reads, one sample each (no batch dimension)."""
+        ...
+
+    def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
+        """Return float32 actions of shape [batch, chunk_size, action_dim]."""
+        ...
+
+
+#: One action of every model served here: LIBERO/robosuite OSC_POSE deltas plus the gripper.
+ACTION_SPEC = TensorSpec("action", "float32", (7,), description="delta eef xyz, delta rotation, gripper (-1 open, 1 close)")
+
+
+class UnknownModelError(KeyError):
+    """A model name no factory is registered for."""
+
+
+def _scripted() -> PolicyModel:
+    from services.policy_worker.models.scripted import ScriptedPickPlacePolicy
+
+    return ScriptedPickPlacePolicy()
+
+
+FACTORIES: dict[str, Callable[[], PolicyModel]] = {
+    "scripted-pick-place": _scripted,
+}
+
+
+def load_model(name: str) -> PolicyModel:
+    """Build a served model by name."""
+    try:
+        factory = FACTORIES[name]
+    except KeyError:
+        raise UnknownModelError(f"unknown model {name!r}; known models: {', '.join(sorted(FACTORIES))}") from None
+    return factory()
