@@ -8,7 +8,7 @@ STAMP := $(VENV)/.zetta-installed
 
 .PHONY: setup proto demo up test test-slow test-all bench lint clean
 
-setup: $(STAMP) proto
+setup: $(STAMP) proto $(VENV)/.zetta-validators
 
 # One venv with everything; the stamp re-runs the install when pyproject.toml changes.
 $(STAMP): pyproject.toml
@@ -18,6 +18,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip uninstall -q -y opencv-python-headless 2>/dev/null || true
 	@command -v redis-server >/dev/null || { [ "$$(id -u)" = 0 ] && apt-get update -qq && apt-get install -y -qq redis-server; } || true
 	touch $(STAMP)
+
+# promtool, prometheus and docker-compose from Debian for tests/deploy (skipped there when missing).
+$(VENV)/.zetta-validators: $(STAMP) deploy/tools/install-validators.sh
+	bash deploy/tools/install-validators.sh $(VENV)
+	touch $@
 
 proto: $(STAMP)
 	$(PY) scripts/gen_proto.py

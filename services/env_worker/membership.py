@@ -33,7 +33,12 @@ class Membership:
         self.cfg = config
         self._held = held_sessions
         self._drop_others = drop_others
-        self._channel = grpc.aio.insecure_channel(config.gateway_address, options=CHANNEL_OPTIONS)
+        # Reconnect quickly after a gateway restart: gRPC's default backoff (1 s growing to 120 s)
+        # would outlast the heartbeat timeout and get this worker's sessions declared LOST.
+        self._channel = grpc.aio.insecure_channel(
+            config.gateway_address,
+            options=[*CHANNEL_OPTIONS, ("grpc.initial_reconnect_backoff_ms", 100), ("grpc.max_reconnect_backoff_ms", 500)],
+        )
         self._stub = registry_pb2_grpc.WorkerRegistryServiceStub(self._channel)
         self._interval_s = 1.0
         self._task: asyncio.Task[None] | None = None

@@ -83,12 +83,15 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         spec_to_wire(family.action_spec(), resp.action_spec)
         return resp
 
-    @staticmethod
-    def _build(slot: BoundSlot) -> None:
+    def _build(self, slot: BoundSlot) -> None:
         try:
-            slot.env = slot.family.init()
+            env = slot.family.init()
         except ResetError as exc:
             raise ge.invalid(str(exc)) from None
+        if not self.table.holds(slot):
+            env.close()  # the session was closed while its env was being built
+            return
+        slot.env = env
 
     @_timed("CloseSlots")
     async def CloseSlots(self, request, context) -> env_worker_pb2.CloseSlotsResponse:  # noqa: N802
@@ -226,18 +229,19 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
 
     # ---- policy ------------------------------------------------------------------------------
 
-    async def _infer(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> np.ndarray:
+    async def _infer(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> tuple[np.ndarray, str]:
+        """The action chunk for the slot's last observation, and the model that answered."""
         episode = slot.require_episode()
         assert slot.last_obs is not None
         obs = encode_observation(slot.last_obs)
         token = f"{self.worker_id}/{slot.session_id}/{episode.episode_id}/{slot.env.episode_step}"
         out = await self.policy.infer(token, policy.model, obs, policy.instruction or episode.instruction, policy.timeout_ms)
         actions = decode(out.actions)
-        return action_spec_check(slot.family.action_spec(), actions, slot.session_id)
+        return action_spec_check(slot.family.action_spec(), actions, slot.session_id), out.model
 
     async def _policy_step(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> types_pb2.StepResult:
         async with slot.busy:
-            chunk = await self._infer(slot, policy)
+            chunk, _ = await self._infer(slot, policy)
             if policy.execute_steps > 0:
                 chunk = chunk[: policy.execute_steps]
             return await slot.run(self._execute, slot, chunk)
@@ -255,11 +259,11 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         slots = self.table.get(list(request.session_ids))
         for s in slots:
             s.require_episode()
-        chunks = await asyncio.gather(*(self._infer(s, request.policy) for s in slots))
+        answers = await asyncio.gather(*(self._infer(s, request.policy) for s in slots))
         return env_worker_pb2.InferSlotsResponse(
             results=[
-                types_pb2.InferResult(session_id=s.session_id, actions=encode(c), model=request.policy.model)
-                for s, c in zip(slots, chunks)
+                types_pb2.InferResult(session_id=s.session_id, actions=encode(chunk), model=model)
+                for s, (chunk, model) in zip(slots, answers)
             ]
         )
 
@@ -301,7 +305,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         last: types_pb2.StepResult | None = None
         async with slot.busy:
             while slot.env.episode_step - first_step < budget and not episode.ended:
-                chunk = await self._infer(slot, policy)
+                chunk, _ = await self._infer(slot, policy)
                 calls += 1
                 remaining = budget - (slot.env.episode_step - first_step)
                 n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)

@@ -104,6 +104,8 @@ class SlotTable:
             key = canonical_config_key(family_name, config)
         except UnknownFamilyError as exc:
             raise ge.invalid(str(exc.args[0] if exc.args else exc)) from None
+        except ConfigError as exc:  # canonical_config validates before the group exists
+            raise ge.invalid(f"env_config for {family_name!r}: {exc}") from None
         with self._group_lock:
             fam = self._groups.get(key)
             if fam is None:
@@ -147,6 +149,10 @@ class SlotTable:
             self._free.append(slot.index)
             self._update_gauges()
         return slot
+
+    def holds(self, slot: BoundSlot) -> bool:
+        """Whether ``slot`` is still bound (it may have been closed while busy)."""
+        return self._bound.get(slot.session_id) is slot
 
     def session_ids(self) -> list[str]:
         """Sessions bound now."""

@@ -29,9 +29,11 @@ class Monitor:
         self.gateway = gateway
         self.cfg = config
         self._task: asyncio.Task[None] | None = None
+        self._started_ms = now_ms()
 
     def start(self) -> None:
         """Start the loop in the background."""
+        self._started_ms = now_ms()
         self._task = asyncio.create_task(self._run())
 
     async def stop(self) -> None:
@@ -61,10 +63,15 @@ class Monitor:
         """Declare workers without a heartbeat dead; returns the sessions that became LOST."""
         lost_all: list[str] = []
         now = now_ms()
+        # Heartbeat keys also expire while no gateway runs to refresh them (a gateway restart):
+        # give every worker one full timeout after this gateway started before declaring it dead.
+        starting = now - self._started_ms < self.cfg.heartbeat_timeout_ms
         for w in await self.registry.workers():
             if w.alive:
                 if now - w.last_hb_ms > 1.5 * self.cfg.heartbeat_interval_ms:
                     metrics.MISSED_HEARTBEATS.labels(w.worker_id).inc()
+                continue
+            if starting:
                 continue
             lost = await self.registry.mark_dead(
                 w.worker_id,

@@ -32,13 +32,15 @@ LIVE_STATES = (CREATE, RUNNING)
 
 _ALLOCATE = """
 -- KEYS: none (keys are derived from the prefix; one Redis, not a cluster)
--- ARGV: prefix, family, count, now_ms, lease_ms, config_json, sid1..sidN
+-- ARGV: prefix, family, count, now_ms, lease_ms, config_json, hold_ms, sid1..sidN
+-- (hold_ms: extra time for building the environments; the lease proper starts at activation)
 local p = ARGV[1]
 local family = ARGV[2]
 local count = tonumber(ARGV[3])
 local now = tonumber(ARGV[4])
 local lease = tonumber(ARGV[5])
 local config = ARGV[6]
+local hold = tonumber(ARGV[7])
 local workers = redis.call('SMEMBERS', p .. ':workers')
 local free = {}
 local ids = {}
@@ -77,11 +79,11 @@ for i = 1, count do
   end
   free[best] = free[best] - 1
   redis.call('HINCRBY', p .. ':worker:' .. best, 'free', -1)
-  local sid = ARGV[6 + i]
+  local sid = ARGV[7 + i]
   redis.call('HSET', p .. ':session:' .. sid, 'family', family, 'config', config, 'worker', best,
-    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease, 'created_ms', now, 'reason', '')
+    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease + hold, 'created_ms', now, 'reason', '')
   redis.call('SADD', p .. ':worker:' .. best .. ':sessions', sid)
-  redis.call('ZADD', p .. ':leases', now + lease, sid)
+  redis.call('ZADD', p .. ':leases', now + lease + hold, sid)
   table.insert(out, sid)
   table.insert(out, best)
 end
@@ -187,13 +189,16 @@ return {1, tostring(expires)}
 """
 
 _ACTIVATE = """
--- ARGV: prefix, action_dtype, action_shape, schema, sid1..sidN
+-- ARGV: prefix, action_dtype, action_shape, schema, now_ms, sid1..sidN
+-- The lease starts now: a build longer than the lease must not leave a born-expired session.
 local n = 0
-for i = 5, #ARGV do
+for i = 6, #ARGV do
   local sk = ARGV[1] .. ':session:' .. ARGV[i]
   if redis.call('HGET', sk, 'state') == 'CREATE' then
+    local expires = tonumber(ARGV[5]) + tonumber(redis.call('HGET', sk, 'lease_ms'))
     redis.call('HSET', sk, 'state', 'RUNNING', 'action_dtype', ARGV[2], 'action_shape', ARGV[3],
-      'schema', ARGV[4])
+      'schema', ARGV[4], 'expires_ms', expires)
+    redis.call('ZADD', ARGV[1] .. ':leases', expires, ARGV[i])
     n = n + 1
   end
 end
@@ -262,11 +267,16 @@ class Registry:
         self._renew = client.register_script(_RENEW)
         self._activate = client.register_script(_ACTIVATE)
 
-    async def allocate(self, family: str, count: int, lease_ms: int, config: dict) -> list[tuple[str, str]]:
-        """Reserve ``count`` slots, all or none; returns (session id, worker id) pairs."""
+    async def allocate(
+        self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0
+    ) -> list[tuple[str, str]]:
+        """Reserve ``count`` slots, all or none; returns (session id, worker id) pairs.
+
+        Until :meth:`activate`, a session expires after ``lease_ms + hold_ms`` (time to build it).
+        """
         sids = [uuid.uuid4().hex for _ in range(count)]
         res = await self._allocate(
-            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), *sids]
+            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), hold_ms, *sids]
         )
         status = _s(res[0])
         if status == "no_worker":
@@ -276,10 +286,10 @@ class Registry:
         return [(_s(res[i]), _s(res[i + 1])) for i in range(1, len(res), 2)]
 
     async def activate(self, sids: Sequence[str], action_dtype: str, action_shape: Sequence[int], schema: bytes) -> int:
-        """CREATE -> RUNNING, storing what requests are validated against."""
+        """CREATE -> RUNNING, storing what requests are validated against; the lease starts now."""
         return int(
             await self._activate(
-                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, *sids]
+                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, now_ms(), *sids]
             )
         )
 

@@ -175,7 +175,8 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         lease_ms = (request.lease_seconds or self.cfg.default_lease_seconds) * 1000
         config = json_format.MessageToDict(request.env_config)
         try:
-            allocated = await self.registry.allocate(family, request.count, lease_ms, config)
+            allocated = await self.registry.allocate(family, request.count, lease_ms, config,
+                                                     hold_ms=self.cfg.create_timeout_ms)
         except NoWorkerError:
             hosted = sorted({f for w in await self.registry.workers() if w.alive for f in w.families})
             metrics.REJECTED.labels(family, "unknown_family").inc()

@@ -148,10 +148,16 @@ def cmd_up(args: argparse.Namespace) -> int:
             report(res, [s.metrics_url for s in stack.services.values()])
         else:
             print("Ctrl-C to stop")
+            # sigwait needs the signals blocked: an unblocked SIGTERM (kill, docker stop) would
+            # take its default action and end this process without stopping the children.
+            stop_signals = {signal.SIGINT, signal.SIGTERM}
+            signal.pthread_sigmask(signal.SIG_BLOCK, stop_signals)
             try:
-                signal.sigwait({signal.SIGINT, signal.SIGTERM})
+                signal.sigwait(stop_signals)
             except KeyboardInterrupt:
                 pass
+            finally:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, stop_signals)
         print("stopping ...", flush=True)
     print("stopped; no process left behind")
     return 0

@@ -285,8 +285,16 @@ def manipulation_schema(
             description="position of the goal's target object, region or site; zeros if the goal has none",
         ),
         TensorSpec(
+            "task_object_bbox", "float32", (6,), privileged=True,
+            description="world axis-aligned box around the task object's collision geoms: min xyz, max xyz",
+        ),
+        TensorSpec(
+            "task_target_bbox", "float32", (6,), privileged=True,
+            description="world axis-aligned box of the target (geoms of a body, or a region's box); zeros if none",
+        ),
+        TensorSpec(
             "task_grasped", "float32", (1,), privileged=True,
-            description="1.0 while both fingerpads touch the task object, else 0.0",
+            description="1.0 while both fingers touch the task object, else 0.0",
         ),
         TensorSpec(
             "object_state", "float32", (object_state_dim,), privileged=True,

@@ -43,24 +43,28 @@ from services.env_worker.families.base import (
 
 select_gl_backend()  # LIBERO imports robosuite, which picks its GL context class at import time
 
+import robosuite.utils.transform_utils as T  # noqa: E402
+from libero.libero import benchmark, get_libero_path  # noqa: E402
+from libero.libero.envs import bddl_utils  # noqa: E402
+from libero.libero.envs.bddl_base_domain import TASK_MAPPING  # noqa: E402
+from robosuite.utils.errors import RandomizationError  # noqa: E402
+
 from services.env_worker.families.robosuite_lift import (  # noqa: E402
     DEFAULT_OBJECT_STATE_DIM,
+    GLOBAL_RNG_LOCK,
     PROPRIO_DIM,
     CompiledModels,
     body_pose,
     build_env,
     clear_gripper_command,
     env_kwargs,
+    geom_ids,
+    geoms_bbox,
     is_grasping,
     robot_and_camera_obs,
     seed_everything,
+    site_bbox,
 )
-
-import robosuite.utils.transform_utils as T  # noqa: E402
-from libero.libero import benchmark, get_libero_path  # noqa: E402
-from libero.libero.envs import bddl_utils  # noqa: E402
-from libero.libero.envs.bddl_base_domain import TASK_MAPPING  # noqa: E402
-from robosuite.utils.errors import RandomizationError  # noqa: E402
 
 LIBERO_CAMERAS = (
     "agentview", "robot0_eye_in_hand", "frontview", "birdview", "sideview", "galleryview", "robot0_robotview",
@@ -74,7 +78,7 @@ _SETTLE_ACTION = np.array([0.0] * 6 + [-1.0])
 _RESET_ATTEMPTS = 20
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _suite(name: str) -> Any:
     return benchmark.get_benchmark_dict()[name]()
 
@@ -83,7 +87,7 @@ def _bddl_path(task: Any) -> str:
     return os.path.join(get_libero_path("bddl_files"), task.problem_folder, task.bddl_file)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _missing_files(name: str) -> tuple[str, ...]:
     suite = _suite(name)
     missing = []
@@ -134,7 +138,10 @@ class LiberoFamily(EnvFamily):
             raise ConfigError(f"libero: suite {suite!r} is not a LIBERO suite; valid suites: {sorted(suites)}")
         missing = _missing_files(suite)
         if missing:
-            raise ConfigError(f"libero: suite {suite!r} is registered but {len(missing)} of its files are not installed, e.g. {missing[0]}")
+            raise ConfigError(
+                f"libero: suite {suite!r} is registered but {len(missing)} of its files are not installed, "
+                f"e.g. {missing[0]}"
+            )
         default_steps = _DEFAULT_MAX_STEPS.get(suite.split("_")[1])
         if default_steps is None and "max_steps" not in config:
             raise ConfigError(f"libero: suite {suite!r} has no standard step budget; set max_steps")
@@ -243,32 +250,54 @@ class LiberoFamily(EnvFamily):
 
 
 @dataclass(frozen=True)
+class _Part:
+    """A goal argument resolved once per env: an object or fixture body, or a site (region, drawer)."""
+
+    name: str
+    body_id: int | None
+    site_id: int | None
+    geom_names: tuple[str, ...]
+    geoms: np.ndarray
+
+    @classmethod
+    def resolve(cls, env: Any, name: str) -> _Part:
+        thing = env.objects_dict.get(name, env.fixtures_dict.get(name))
+        names = tuple(thing.contact_geoms) if thing is not None else ()
+        if name in env.obj_body_id:
+            return cls(name, env.obj_body_id[name], None, names, geom_ids(env, names))
+        return cls(name, None, env.sim.model.site_name2id(name), names, geom_ids(env, names))
+
+    def pose(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Position and xyzw quaternion."""
+        if self.body_id is not None:
+            return body_pose(env, self.body_id)
+        data = env.sim.data._data
+        return np.array(data.site_xpos[self.site_id]), T.mat2quat(data.site_xmat[self.site_id].reshape(3, 3))
+
+    def bbox(self, env: Any) -> np.ndarray:
+        """World box of the body's collision geoms, or of the site."""
+        if len(self.geoms):
+            return geoms_bbox(env, self.geoms)
+        if self.site_id is not None:
+            return site_bbox(env, self.site_id)
+        pos = self.pose(env)[0]
+        return np.concatenate([pos, pos])
+
+
+@dataclass(frozen=True)
 class _Goal:
-    """One goal predicate with its names resolved once per env."""
+    """One goal predicate with its arguments resolved."""
 
     predicate: list[str]
-    object_name: str
-    target_name: str | None
-    object_geoms: tuple[str, ...]
+    object: _Part
+    target: _Part | None
 
 
 def _goals(env: Any) -> list[_Goal]:
-    goals = []
-    for predicate in env.parsed_problem["goal_state"]:
-        name = predicate[1]
-        thing = env.objects_dict.get(name, env.fixtures_dict.get(name))
-        geoms = tuple(thing.contact_geoms) if thing is not None else ()
-        goals.append(_Goal(list(predicate), name, predicate[2] if len(predicate) == 3 else None, geoms))
-    return goals
-
-
-def _pose(env: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Pose (xyzw) of an object or fixture body, or of a site such as a region or drawer."""
-    if name in env.obj_body_id:
-        return body_pose(env, env.obj_body_id[name])
-    pos = np.array(env.sim.data.get_site_xpos(name))
-    quat = T.mat2quat(np.array(env.sim.data.get_site_xmat(name)))
-    return pos, quat
+    return [
+        _Goal(list(p), _Part.resolve(env, p[1]), _Part.resolve(env, p[2]) if len(p) == 3 else None)
+        for p in env.parsed_problem["goal_state"]
+    ]
 
 
 class _LiberoSlot(EpisodeSlot):
@@ -297,16 +326,17 @@ class _LiberoSlot(EpisodeSlot):
         init_state = self._family.init_state(index, spec.init_state_index)
         self.switch_task(index)
         env = self._env
-        seed_everything(spec.seed)
-        clear_gripper_command(env)
-        for _ in range(_RESET_ATTEMPTS):
-            try:
-                env.reset()
-                break
-            except RandomizationError:
-                continue
-        else:
-            raise ResetError(f"libero: object placement failed {_RESET_ATTEMPTS} times for seed {spec.seed}")
+        with GLOBAL_RNG_LOCK:
+            seed_everything(spec.seed)
+            clear_gripper_command(env)
+            for _ in range(_RESET_ATTEMPTS):
+                try:
+                    env.reset()
+                    break
+                except RandomizationError:
+                    continue
+            else:
+                raise ResetError(f"libero: object placement failed {_RESET_ATTEMPTS} times for seed {spec.seed}")
         # What LIBERO's ControlEnv.set_init_state does, on the domain env itself.
         env.sim.set_state_from_flattened(init_state)
         env.sim.forward()
@@ -339,19 +369,23 @@ class _LiberoSlot(EpisodeSlot):
         env = self._env
         cfg = self._family.config
         holds = [bool(env._eval_predicate(g.predicate)) for g in self._goals]
-        current = next((g for g, ok in zip(self._goals, holds) if not ok), self._goals[0] if self._goals else None)
+        pending = [g for g, ok in zip(self._goals, holds, strict=True) if not ok]
+        current = pending[0] if pending else (self._goals[0] if self._goals else None)
         raw = robot_and_camera_obs(obs, cfg["cameras"])
-        zeros3 = np.zeros(3)
-        if current is None:
-            pos, quat, target, grasped = zeros3, np.zeros(4), zeros3, False
-        else:
-            pos, quat = _pose(env, current.object_name)
-            target = _pose(env, current.target_name)[0] if current.target_name else zeros3
-            grasped = is_grasping(env, current.object_geoms)
+        pos, quat, obj_bbox = np.zeros(3), np.zeros(4), np.zeros(6)
+        target, target_bbox, grasped = np.zeros(3), np.zeros(6), False
+        if current is not None:
+            pos, quat = current.object.pose(env)
+            obj_bbox = current.object.bbox(env)
+            grasped = is_grasping(env, current.object.geom_names)
+            if current.target is not None:
+                target, target_bbox = current.target.pose(env)[0], current.target.bbox(env)
         raw.update(
             task_object_pos=pos,
             task_object_quat=quat,
             task_target_pos=target,
+            task_object_bbox=obj_bbox,
+            task_target_bbox=target_bbox,
             task_grasped=np.array([float(grasped)]),
             object_state=zero_padded(obs["object-state"], cfg["object_state_dim"], "object-state"),
         )

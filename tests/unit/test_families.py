@@ -1,0 +1,259 @@
+"""Env families: registry, config validation, canonical observations, determinism and sharing.
+
+These pin down the contract the env worker relies on: errors that name the valid choices, an
+observation that matches the declared schema exactly, episodes that replay bit for bit from their
+key, and slots of one group that reuse compiled models and warm environments instead of
+rebuilding. One LIBERO group is shared by the tests (its first build costs about 4 s).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from services.common.specs import SpecError, TensorSpec
+from services.env_worker.families.base import (
+    ConfigError,
+    EpisodeError,
+    ResetError,
+    ResetSpec,
+    UnknownFamilyError,
+    canonical_config_key,
+    family_names,
+    get_family,
+    normalize_observation,
+    select_gl_backend,
+)
+
+CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
+PRIVILEGED = {
+    "task_object_pos", "task_object_quat", "task_target_pos", "task_object_bbox", "task_target_bbox",
+    "task_grasped", "object_state",
+}
+
+
+@pytest.fixture(scope="module")
+def libero():
+    family = get_family("libero")({"suite": "libero_goal", "task": CREAM_CHEESE})
+    yield family
+    family.close()
+
+
+@pytest.fixture(scope="module")
+def libero_slot(libero):
+    slot = libero.init()
+    yield slot
+    slot.close()
+
+
+def _rollout(slot, spec: ResetSpec, steps: int) -> list[dict[str, np.ndarray]]:
+    actions = np.random.default_rng(123).uniform(-1, 1, size=(steps, 7)).astype(np.float32)
+    first, _ = slot.reset(spec)
+    return [first] + [slot.step(a).observation for a in actions]
+
+
+def _assert_same(a: list[dict[str, np.ndarray]], b: list[dict[str, np.ndarray]]) -> None:
+    for t, (x, y) in enumerate(zip(a, b, strict=True)):
+        for name in x:
+            assert np.array_equal(x[name], y[name]), f"{name} differs at step {t}"
+
+
+# ---- registry -------------------------------------------------------------------------------
+
+
+def test_unknown_family_lists_known_names() -> None:
+    with pytest.raises(UnknownFamilyError) as err:
+        get_family("mujoco_menagerie")
+    assert "libero" in str(err.value) and "robosuite" in str(err.value)
+    assert {"libero", "robosuite"} <= set(family_names())
+
+
+def test_importing_base_loads_no_simulator() -> None:
+    """Families are imported lazily, so a worker pays only for the simulators it serves."""
+    code = (
+        "import sys, services.env_worker.families.base as b; "
+        "assert 'libero' in b.family_names(); "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('libero', 'robosuite', 'mujoco')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+# ---- config -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("family", "config", "needle"),
+    [
+        ("libero", {"suite": "libero_nonexistent"}, "libero_goal"),
+        ("libero", {}, "valid suites"),
+        ("libero", {"suite": "libero_goal", "camera": ["agentview"]}, "valid keys"),
+        ("libero", {"suite": "libero_goal", "cameras": ["wristcam"]}, "robot0_eye_in_hand"),
+        ("libero", {"suite": "libero_goal", "camera_size": 12.5}, "integer"),
+        ("libero", {"suite": "libero_goal", "task": "99"}, CREAM_CHEESE),
+        ("robosuite", {"env_name": "NoSuchEnv"}, "Lift"),
+        ("robosuite", {"robots": "UR5e"}, "Panda"),
+    ],
+)
+def test_bad_config_fails_fast_naming_the_choices(family: str, config: dict, needle: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        get_family(family)(config)
+    assert needle in str(err.value)
+
+
+def test_canonical_config_key_merges_equivalent_configs() -> None:
+    """Defaults, Struct floats and task indices collapse to one sharing group."""
+    plain = canonical_config_key("libero", {"suite": "libero_goal", "task": CREAM_CHEESE})
+    spelled = canonical_config_key("libero", {"suite": "libero_goal", "task": "6", "camera_size": 128.0})
+    assert plain == spelled
+    assert plain != canonical_config_key("libero", {"suite": "libero_goal_swap", "task": "6"})
+
+
+# ---- reset errors -----------------------------------------------------------------------------
+
+
+def test_reset_errors_name_the_valid_range() -> None:
+    family = get_family("libero")({"suite": "libero_goal"})
+    slot = family.init()
+    with pytest.raises(ResetError, match=CREAM_CHEESE):
+        slot.reset(ResetSpec("put_the_cheese_somewhere"))
+    with pytest.raises(ResetError, match=r"0\.\.49"):
+        slot.reset(ResetSpec(CREAM_CHEESE, init_state_index=50))
+    with pytest.raises(ResetError, match="names no task"):
+        slot.reset(ResetSpec(""))
+    with pytest.raises(EpisodeError):
+        slot.observe()
+    assert family.sharing_stats()["envs_built"] == 0, "invalid resets must not build an env"
+    slot.close()
+    family.close()
+
+
+# ---- canonical observations -------------------------------------------------------------------
+
+
+def test_observation_matches_schema_exactly(libero, libero_slot) -> None:
+    schema = libero.obs_schema()
+    obs, instruction = libero_slot.reset(ResetSpec("", seed=1, init_state_index=0))
+    assert instruction == "put the cream cheese in the bowl"
+    assert list(obs) == list(schema)
+    for name, spec in schema.items():
+        assert obs[name].dtype == np.dtype(spec.dtype) and obs[name].shape == spec.shape, name
+        assert spec.privileged == (name in PRIVILEGED), name
+    assert obs["task_object_pos"].any() and obs["task_target_pos"].any()
+    assert obs["task_grasped"][0] == 0.0
+    assert libero.action_spec().shape == (7,) and libero.max_episode_steps("6") == 300
+
+    outcome = libero_slot.step(np.zeros(7, np.float32))
+    assert list(outcome.observation) == list(schema)
+    assert libero_slot.episode_step == 1 and not outcome.terminated and not outcome.truncated
+    assert outcome.info["goal_predicates"] == 1.0
+    observed = libero_slot.observe()
+    assert all(np.array_equal(observed[k], outcome.observation[k]) for k in schema)
+    assert libero_slot.episode_step == 1, "observe() must not advance the episode"
+
+    _, override = libero_slot.reset(ResetSpec("", instruction="grab the cheese"))
+    assert override == "grab the cheese"
+
+
+def test_normalize_casts_and_checks() -> None:
+    schema = {
+        "pos": TensorSpec("pos", "float32", (3,)),
+        "image": TensorSpec("image", "uint8", (2, 2, 3)),
+    }
+    out = normalize_observation({"pos": [1.0, 2.0, 3.0], "image": np.ones(12, dtype=np.int64), "extra": 1}, schema)
+    assert out["pos"].dtype == np.float32 and out["image"].shape == (2, 2, 3) and set(out) == set(schema)
+    with pytest.raises(SpecError, match="pos"):
+        normalize_observation({"pos": np.zeros(4), "image": np.zeros((2, 2, 3))}, schema)
+    with pytest.raises(SpecError, match="missing"):
+        normalize_observation({"pos": np.zeros(3)}, schema)
+
+
+# ---- determinism and sharing ------------------------------------------------------------------
+
+
+def test_same_episode_key_replays_identically(libero, libero_slot) -> None:
+    """Same key and actions give identical observations, on a reused env and on a second slot."""
+    spec = ResetSpec(CREAM_CHEESE, seed=7, init_state_index=3)
+    first = _rollout(libero_slot, spec, 20)
+    _rollout(libero_slot, ResetSpec(CREAM_CHEESE, seed=8, init_state_index=4), 5)  # dirty the env
+    _assert_same(first, _rollout(libero_slot, spec, 20))
+    other = libero.init()
+    try:
+        _assert_same(first, _rollout(other, spec, 20))
+    finally:
+        other.close()
+    moved = _rollout(libero_slot, ResetSpec(CREAM_CHEESE, seed=7, init_state_index=4), 0)
+    assert not np.array_equal(first[0]["task_object_pos"], moved[0]["task_object_pos"])
+
+
+def test_slots_share_compiled_model_and_warm_envs(libero, libero_slot) -> None:
+    before = libero.sharing_stats()
+    assert before["models_compiled"] == 1
+    second = libero.init()  # the fixture slot still holds its env: build one from the cached model
+    after_build = libero.sharing_stats()
+    assert after_build["models_compiled"] == 1
+    assert after_build["models_reused"] + after_build["envs_reused"] > before["models_reused"] + before["envs_reused"]
+    second.close()
+    assert libero.sharing_stats()["envs_idle"] >= 1
+    built = libero.sharing_stats()["envs_built"]
+    third = libero.init()  # takes the parked env: no build at all
+    stats = libero.sharing_stats()
+    assert stats["envs_built"] == built and stats["envs_reused"] > after_build["envs_reused"]
+    third.close()
+
+
+def test_slot_switches_task_on_reset(libero) -> None:
+    slot = libero.init()
+    try:
+        _, instruction = slot.reset(ResetSpec("put_the_bowl_on_the_plate"))
+        assert instruction == "put the bowl on the plate"
+        _, instruction = slot.reset(ResetSpec("6"))
+        assert instruction == "put the cream cheese in the bowl"
+    finally:
+        slot.close()
+    assert libero.sharing_stats()["models_compiled"] == 1, "LIBERO-Goal tasks share one scene"
+
+
+# ---- robosuite --------------------------------------------------------------------------------
+
+
+def test_robosuite_lift_steps_and_truncates() -> None:
+    family = get_family("robosuite")({"env_name": "Lift", "max_steps": 3})
+    slot = family.init()
+    try:
+        obs, instruction = slot.reset(ResetSpec("Lift", seed=3))
+        assert instruction == "lift the cube"
+        schema = family.obs_schema()
+        for name, spec in schema.items():
+            spec.check(obs[name])
+        np.testing.assert_allclose(obs["task_target_pos"] - obs["task_object_pos"], [0, 0, 0.1], atol=1e-6)
+        outcomes = [slot.step(np.array([0, 0, 0.5, 0, 0, 0, -1], np.float32)) for _ in range(3)]
+        assert [o.truncated for o in outcomes] == [False, False, True]
+        assert outcomes[-1].observation["robot0_eef_pos"][2] > obs["robot0_eef_pos"][2]
+        with pytest.raises(EpisodeError, match="reset"):
+            slot.step(np.zeros(7, np.float32))
+        with pytest.raises(ResetError, match="Lift"):
+            slot.reset(ResetSpec("Stack"))
+    finally:
+        slot.close()
+        family.close()
+
+
+@pytest.mark.skipif(not select_gl_backend(), reason="no EGL or OSMesa library for offscreen rendering")
+def test_camera_images_are_upright_uint8() -> None:
+    cameras = ["agentview", "robot0_eye_in_hand"]
+    family = get_family("robosuite")({"env_name": "Lift", "cameras": cameras, "camera_size": 32})
+    slot = family.init()
+    try:
+        obs, _ = slot.reset(ResetSpec(""))
+        for name in ("agentview_image", "eye_in_hand_image"):
+            assert obs[name].dtype == np.uint8 and obs[name].shape == (32, 32, 3)
+            assert obs[name].std() > 0, f"{name} is blank"
+        sky, floor = obs["agentview_image"][:4].mean(), obs["agentview_image"][-4:].mean()
+        assert sky != floor
+    finally:
+        slot.close()
+        family.close()
