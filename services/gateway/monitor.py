@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections import Counter as Tally
-
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
-from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, _s, now_ms
+from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, now_ms
 from services.gateway.servicer import GatewayServicer
 
 log = logging.getLogger(__name__)
@@ -99,16 +97,12 @@ class Monitor:
 
     async def update_gauges(self) -> None:
         """Sessions by family and state, workers by health, free slots per worker."""
-        tally: Tally[tuple[str, str]] = Tally()
-        for sid in await self.registry.all_session_ids():
-            fam, state = await self.registry.r.hmget(f"{self.registry.p}:session:{sid}", "family", "state")
-            if fam is not None and state is not None:
-                tally[(_s(fam), _s(state))] += 1
-        families = {f for f, _ in tally} | {f for w in await self.registry.workers() for f in w.families}
+        tally = await self.registry.count_by_family_state()
+        workers = await self.registry.workers()
+        families = {f for f, _ in tally} | {f for w in workers for f in w.families}
         for fam in families:
             for state in (CREATE, RUNNING, TERMINATED, LOST):
                 metrics.SESSIONS.labels(fam, state).set(tally.get((fam, state), 0))
-        workers = await self.registry.workers()
         metrics.WORKERS.labels("alive").set(sum(w.alive for w in workers))
         metrics.WORKERS.labels("dead").set(sum(not w.alive for w in workers))
         for w in workers:

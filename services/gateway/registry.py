@@ -329,9 +329,26 @@ class Registry:
             )
         return out
 
-    async def session_hash(self, sid: str) -> dict[str, bytes]:
-        """Every stored field of one session (for listings)."""
-        return await self.r.hgetall(f"{self.p}:session:{sid}")
+    async def session_hashes(self, sids: Sequence[str]) -> list[dict[str, bytes]]:
+        """Every stored field of each session (for listings), in one round trip."""
+        pipe = self.r.pipeline(transaction=False)
+        for sid in sids:
+            pipe.hgetall(f"{self.p}:session:{sid}")
+        rows = await pipe.execute()
+        return [{_s(k): v for k, v in row.items()} for row in rows]
+
+    async def count_by_family_state(self) -> dict[tuple[str, str], int]:
+        """How many sessions of each (family, state) the registry holds, tombstones included."""
+        sids = await self.all_session_ids()
+        pipe = self.r.pipeline(transaction=False)
+        for sid in sids:
+            pipe.hmget(f"{self.p}:session:{sid}", "family", "state")
+        counts: dict[tuple[str, str], int] = {}
+        for family, state in await pipe.execute():
+            if family is not None and state is not None:
+                key = (_s(family), _s(state))
+                counts[key] = counts.get(key, 0) + 1
+        return counts
 
     async def all_session_ids(self) -> list[str]:
         """Ids of every session hash, live or tombstoned."""
@@ -411,6 +428,7 @@ class Registry:
 
 
 def _s(value: bytes | str | int) -> str:
+    """Redis replies come as bytes; keys and fields are ASCII."""
     if isinstance(value, bytes):
         return value.decode()
     return str(value)

@@ -32,7 +32,6 @@ from services.gateway.registry import (
     PoolFullError,
     Registry,
     SessionRecord,
-    _s,
 )
 from services.gateway.workers import WorkerPool
 from zetta.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
@@ -457,23 +456,24 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
     @_timed("ListSessions")
     async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:  # noqa: N802
-        wanted = {s for s in request.states}
+        wanted = set(request.states)
+        sids = await self.registry.all_session_ids()
         out = []
-        for sid in await self.registry.all_session_ids():
-            h = {k.decode(): v for k, v in (await self.registry.session_hash(sid)).items()}
+        for sid, h in zip(sids, await self.registry.session_hashes(sids)):
             if not h:
                 continue
-            state = _STATE_ENUM.get(_s(h.get("state", b"")), types_pb2.SESSION_STATE_UNSPECIFIED)
-            family = _s(h.get("family", b""))
+            text = {k: v.decode() for k, v in h.items() if k != "schema"}
+            state = _STATE_ENUM.get(text.get("state", ""), types_pb2.SESSION_STATE_UNSPECIFIED)
+            family = text.get("family", "")
             if (request.env_family and family != request.env_family) or (wanted and state not in wanted):
                 continue
             info = types_pb2.SessionInfo(
                 session_id=sid,
                 env_family=family,
                 state=state,
-                worker_id=_s(h.get("worker", b"")),
-                lease_expires_unix_ms=int(_s(h.get("expires_ms", b"0")) or 0),
-                reason=_s(h.get("reason", b"")),
+                worker_id=text.get("worker", ""),
+                lease_expires_unix_ms=int(text.get("expires_ms") or 0),
+                reason=text.get("reason", ""),
             )
             if h.get("schema"):
                 opened = env_worker_pb2.OpenSlotsResponse.FromString(h["schema"])
