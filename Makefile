@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.zetta-installed
 
-.PHONY: setup proto demo up test test-slow test-all bench lint clean
+.PHONY: setup proto demo up test test-slow test-all bench bench-policy lint clean
 
 setup: $(STAMP) proto $(VENV)/.zetta-validators
 
@@ -44,6 +44,10 @@ test-all: setup
 
 bench: setup
 	$(PY) bench/bench_rollout.py
+
+# The Zetta VLA: batch throughput, split vs monolithic under a 200 ms SLO, W8A8 vs float.
+bench-policy: setup
+	$(PY) bench/bench_policy.py
 
 lint: setup
 	$(VENV)/bin/buf lint

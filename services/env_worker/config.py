@@ -24,6 +24,9 @@ class EnvWorkerConfig:
     slots: int
     default_policy_timeout_ms: int
     grace_seconds: float
+    #: Directory for episode videos (ZETTA_VIDEO_DIR), created and proven writable at start-up;
+    #: empty: sessions cannot ask for videos.
+    video_dir: str = ""
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -50,6 +53,7 @@ class EnvWorkerConfig:
             slots=env.int("ZETTA_SLOTS", 8, minimum=1, maximum=1024),
             default_policy_timeout_ms=env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1),
             grace_seconds=env.float("ZETTA_GRACE_SECONDS", 10.0, minimum=0.0),
+            video_dir=_video_dir(env),
         )
         env.finish("env worker")
         return cfg
@@ -58,10 +62,27 @@ class EnvWorkerConfig:
         """Fill the worker id and advertised address once the port is bound."""
         from dataclasses import replace
 
-        address = self.advertise_address or f"{self.host}:{bound_port}"
+        # A wildcard bind address cannot be dialled: advertise the host name instead (what a
+        # container or pod is reachable by).
+        host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
+        address = self.advertise_address or f"{host}:{bound_port}"
         return replace(
             self,
             port=bound_port,
             advertise_address=address,
             worker_id=self.worker_id or f"{socket.gethostname()}-{bound_port}",
         )
+
+
+def _video_dir(env: EnvReader) -> str:
+    """ZETTA_VIDEO_DIR as an absolute path, or "" when unset; an unusable directory is reported."""
+    from services.env_worker.video import VideoError, check_video_dir
+
+    raw = env.str("ZETTA_VIDEO_DIR", "")
+    if not raw:
+        return ""
+    try:
+        return check_video_dir(raw)
+    except VideoError as exc:
+        env.fail(f"ZETTA_VIDEO_DIR: {exc}")
+        return ""

@@ -33,7 +33,10 @@ class PolicyClient:
     """Sends inference items to the policy workers and routes answers back by token."""
 
     def __init__(self, addresses: Sequence[str], default_timeout_ms: int) -> None:
-        self._channels = [grpc.aio.insecure_channel(a, options=CHANNEL_OPTIONS) for a in addresses]
+        # round_robin spreads calls over every address a name resolves to (dns:///policy:50071 in
+        # Kubernetes), so policy pods added by the autoscaler take load from existing env workers.
+        options = [*CHANNEL_OPTIONS, ("grpc.lb_policy_name", "round_robin")]
+        self._channels = [grpc.aio.insecure_channel(a, options=options) for a in addresses]
         self._stubs = [policy_worker_pb2_grpc.PolicyWorkerServiceStub(c) for c in self._channels]
         self._rr = itertools.cycle(range(len(self._stubs))) if self._stubs else None
         self._pending: list[_Pending] = []
