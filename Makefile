@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.zetta-installed
 
-.PHONY: setup proto demo up test test-slow test-all bench bench-policy lint clean
+.PHONY: setup proto demo up test test-slow test-all bench bench-policy bench-sim lint clean
 
 setup: $(STAMP) proto $(VENV)/.zetta-validators
 
@@ -48,6 +48,10 @@ bench: setup
 # The Zetta VLA: batch throughput, split vs monolithic under a 200 ms SLO, W8A8 vs float.
 bench-policy: setup
 	$(PY) bench/bench_policy.py
+
+# Simulation: fast step vs env.step vs raw mj_step, slot create/reset, threads vs processes.
+bench-sim: setup
+	$(PY) bench/bench_sim.py
 
 lint: setup
 	$(VENV)/bin/buf lint

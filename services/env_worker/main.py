@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+import threading
+
 from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
@@ -9,23 +12,49 @@ from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.families.base import UnknownFamilyError, get_family
 from services.env_worker.membership import Membership
 from services.env_worker.policy_client import PolicyClient
+from services.env_worker.rendering import gl_backend_choice, gl_renderer_string, select_gl_backend
 from services.env_worker.servicer import EnvWorkerServicer
 from services.env_worker.slots import SlotTable
 from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
+
+log = logging.getLogger(__name__)
+
+
+def _warm_fast_step() -> None:
+    from services.env_worker import fast_step
+
+    log.info("fast step kernel ready in %.1f s", fast_step.warm_up())
+
+
+def _gl_renderer() -> str:
+    """The OpenGL implementation frames will come from (GPU or llvmpipe), checked once at start."""
+    if not gl_backend_choice().backend:
+        return "none"
+    try:
+        return gl_renderer_string()
+    except Exception as exc:  # noqa: BLE001 - state-only sessions still work; camera configs will fail
+        log.warning("rendering: cannot make a GL context: %s", exc)
+        return f"unavailable ({exc})"
 
 
 async def main() -> None:
     """Serve the slots, register with the gateway, heartbeat; on SIGTERM drain and deregister."""
     setup_logging("env_worker")
     cfg = EnvWorkerConfig.from_env()
+    # Before any family import: MuJoCo and robosuite read MUJOCO_GL when they are imported.
+    select_gl_backend()
+    log.info("rendering: %s; OpenGL renderer: %s", gl_backend_choice().describe(), _gl_renderer())
+    log.info("episode videos: %s", cfg.video_dir or "off (ZETTA_VIDEO_DIR unset)")
     for name in cfg.families:
         try:
             get_family(name)
         except UnknownFamilyError as exc:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES: {exc}") from None
+    if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
+        threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms)
-    servicer = EnvWorkerServicer(table, policy)
+    servicer = EnvWorkerServicer(table, policy, video_dir=cfg.video_dir)
     membership: Membership | None = None
 
     async def drain() -> None:

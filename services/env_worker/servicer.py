@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 from collections.abc import Sequence
 
@@ -22,9 +23,10 @@ from services.common.metrics import HOP_LATENCY
 from services.common.spec_codec import spec_to_wire
 from zetta.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import metrics
-from services.env_worker.families.base import ResetError, ResetSpec
+from services.env_worker.families.base import ResetError, ResetSpec, Slot
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
+from services.env_worker.video import VideoError
 from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
 
 log = logging.getLogger(__name__)
@@ -47,13 +49,20 @@ def _timed(method: str):  # type: ignore[no-untyped-def]
     return deco
 
 
+def _milestone_report(env: Slot) -> tuple[list[str], list[str], str]:
+    """The episode's milestones M, those observed, and m* (read on the slot's thread)."""
+    return env.milestone_names(), env.milestones_reached(), env.first_missing_milestone()
+
+
 class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
     """The slots of one worker process."""
 
-    def __init__(self, table: SlotTable, policy: PolicyClient, worker_id: str = "") -> None:
+    def __init__(self, table: SlotTable, policy: PolicyClient, worker_id: str = "", video_dir: str = "") -> None:
         self.table = table
         self.policy = policy
         self.worker_id = worker_id
+        #: Where episode videos go (ZETTA_VIDEO_DIR, checked at start-up); empty: no videos.
+        self.video_dir = video_dir
         self._episodes_in_flight = 0
         self._idle = asyncio.Event()
         self._idle.set()
@@ -91,6 +100,9 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         if not self.table.holds(slot):
             env.close()  # the session was closed while its env was being built
             return
+        renderer = getattr(env, "renderer", None)
+        if renderer is not None:
+            renderer.warm()  # the GL context now, not in the first reset (rendering.SlotRenderer.warm)
         slot.env = env
 
     @_timed("CloseSlots")
@@ -125,20 +137,30 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         results = await asyncio.gather(*(s.run(self._reset, s, spec) for s, spec in zip(slots, request.specs)))
         return env_worker_pb2.ResetSlotsResponse(results=results)
 
-    @staticmethod
-    def _reset(slot: BoundSlot, spec: types_pb2.ResetSpec) -> types_pb2.ResetResult:
+    def _reset(self, slot: BoundSlot, spec: types_pb2.ResetSpec) -> types_pb2.ResetResult:
         start = time.perf_counter()
+        episode_id = new_episode_id()
+        video_path = ""
+        if spec.record_video:
+            if not self.video_dir:
+                raise ge.failed_precondition(
+                    f"session {slot.session_id} asked for a video but this env worker has no ZETTA_VIDEO_DIR",
+                    [slot.session_id],
+                )
+            video_path = os.path.join(self.video_dir, f"{episode_id}.mp4")
         if slot.env is None:
             slot.env = slot.family.init()
         try:
             obs, instruction = slot.env.reset(
                 ResetSpec(task=spec.task, seed=spec.seed, init_state_index=spec.init_state_index,
-                          instruction=spec.instruction)
+                          instruction=spec.instruction, video_path=video_path)
             )
         except ResetError as exc:
             raise ge.invalid(f"reset of session {slot.session_id}: {exc}", [slot.session_id]) from None
+        except VideoError as exc:
+            raise ge.ServiceError(grpc.StatusCode.INTERNAL, f"video of session {slot.session_id}: {exc}") from None
         episode = Episode(
-            episode_id=new_episode_id(),
+            episode_id=episode_id,
             instruction=spec.instruction or instruction,
             max_steps=slot.family.max_episode_steps(spec.task),
         )
@@ -151,6 +173,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             episode_id=episode.episode_id,
             instruction=episode.instruction,
             max_steps=episode.max_steps,
+            video_path=video_path,
+            milestone_names=slot.env.milestone_names(),
         )
         encode_observation(obs, result.observation)
         return result
@@ -198,15 +222,19 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         reward = 0.0
         executed = 0
         outcome = None
-        for action in chunk:
+        last = len(chunk) - 1
+        for i, action in enumerate(chunk):
             start = time.perf_counter()
-            outcome = env.step(action)
+            # Camera images only for the observation this call returns: after the chunk's last action.
+            outcome = env.step(action, render=i == last)
             step_hist.observe(time.perf_counter() - start)
             reward += outcome.reward
             executed += 1
             if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
                 break
         assert outcome is not None
+        if executed - 1 != last:  # the episode ended inside the chunk: render its final observation
+            outcome.observation = env.observe()
         metrics.STEPS.labels(family).inc(executed)
         truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)
         if outcome.terminated or truncated:
@@ -222,6 +250,9 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             success=outcome.success,
             episode_step=env.episode_step,
             info=outcome.info,
+            video_path=outcome.video_path,
+            first_missing_milestone=env.first_missing_milestone(),
+            milestones_reached=env.milestones_reached(),
         )
         encode(chunk[:executed], result.executed_actions)
         encode_observation(outcome.observation, result.observation)
@@ -311,6 +342,9 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
                 n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)
                 last = await slot.run(self._execute, slot, chunk[: min(n, remaining)])
                 reward += last.reward
+            # The summary's video is complete: one that the budget cut short is finished here.
+            video_path = await slot.run(slot.env.finish_video)
+            names, reached, missing = await slot.run(_milestone_report, slot.env)
         if last is not None and last.success:
             reason = types_pb2.STOP_REASON_SUCCESS
         elif last is not None and last.terminated:
@@ -326,6 +360,10 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             stop_reason=reason,
             wall_ms=(time.perf_counter() - start) * 1000.0,
             policy_calls=calls,
+            video_path=video_path,
+            milestone_names=names,
+            milestones_reached=reached,
+            first_missing_milestone=missing,
         )
 
     async def wait_idle(self) -> None:

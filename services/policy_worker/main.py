@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
@@ -23,6 +24,11 @@ async def main() -> None:
         model.name = name
     scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler,
                                PrometheusObserver())
+    if os.environ.get("ZETTA_VLA_SPLIT", "0") not in ("", "0", "false"):
+        # The Zetta VLA's stages in two processes sharing the prefix (docs/policies.md).
+        from services.policy_worker.vla.split import wrap_for_split
+
+        scheduler = wrap_for_split(scheduler, models, cfg.scheduler)
     servicer = PolicyWorkerServicer(models, cfg.models[0], scheduler, cfg.default_timeout_ms)
     runner = ServiceRunner(
         name="policy_worker",

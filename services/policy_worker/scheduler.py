@@ -53,6 +53,9 @@ GroupKey = tuple[str, tuple[tuple[str, np.dtype, tuple[int, ...]], ...]]
 # Weight of the newest batch in the compute-time estimate: recent enough to follow load changes,
 # smooth enough that one slow batch does not start rejecting deadlines.
 _ESTIMATE_WEIGHT = 0.2
+#: An estimate older than this no longer rejects requests early: the estimate only moves when a
+#: batch runs, so after one slow spell it would otherwise refuse every request forever.
+ESTIMATE_TTL_SECONDS = 5.0
 # A retry hint of zero would invite a busy loop of retries against a full queue.
 _MIN_RETRY_AFTER = 0.001
 
@@ -247,6 +250,7 @@ class BatchScheduler:
         self._waiters: dict[str, asyncio.Future[np.ndarray]] = {}
         self._depth: dict[str, int] = {}
         self._estimates: dict[GroupKey, float] = {}
+        self._estimated_at: dict[GroupKey, float] = {}
         self._busy = 0
         self._closing = False
         self._dispatcher: asyncio.Task[None] | None = None
@@ -332,7 +336,8 @@ class BatchScheduler:
             self._observer.on_reject(item.model, "deadline_expired")
             raise DeadlineExceededError(f"request {item.token!r}: deadline passed {now - deadline:.4f}s ago")
         estimate = self._estimates.get(key)
-        if estimate is not None and now + estimate > deadline:
+        fresh = now - self._estimated_at.get(key, now) < ESTIMATE_TTL_SECONDS
+        if estimate is not None and fresh and now + estimate > deadline:
             self._observer.on_reject(item.model, "deadline_unreachable")
             raise DeadlineExceededError(
                 f"request {item.token!r}: {deadline - now:.4f}s left, a batch takes about {estimate:.4f}s"
@@ -475,6 +480,7 @@ class BatchScheduler:
                 future.set_result(outputs[row])
         previous = self._estimates.get(key)
         self._estimates[key] = seconds if previous is None else previous + _ESTIMATE_WEIGHT * (seconds - previous)
+        self._estimated_at[key] = time.monotonic()
         self._observer.on_batch(model, len(batch), seconds)
 
     def _compute(self, model: str, batch: list[InferItem]) -> tuple[np.ndarray, float]:

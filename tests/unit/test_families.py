@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from services.common.specs import SpecError, TensorSpec
+from services.env_worker.milestones import milestone_specs
+from services.env_worker.signals import signal_specs
 from services.env_worker.families.base import (
     ConfigError,
     EpisodeError,
@@ -32,7 +34,7 @@ CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 PRIVILEGED = {
     "task_object_pos", "task_object_quat", "task_target_pos", "task_object_bbox", "task_target_bbox",
     "task_grasped", "object_state",
-}
+} | {s.name for s in milestone_specs() + signal_specs()}
 
 
 @pytest.fixture(scope="module")

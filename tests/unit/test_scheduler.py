@@ -246,6 +246,22 @@ async def test_unreachable_deadline_is_rejected_early() -> None:
 
 
 @pytest.mark.asyncio
+async def test_stale_estimate_stops_rejecting(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One slow spell must not refuse tight deadlines forever: a stale estimate lets a request run."""
+    from services.policy_worker import scheduler as sched
+
+    model = FakeModel(cost=0.05)
+    async with BatchScheduler(model) as scheduler:
+        await asyncio.wait_for(scheduler.submit(make_item("slow")), GUARD)
+        with pytest.raises(DeadlineExceededError):
+            await scheduler.submit(make_item("refused", deadline=time.monotonic() + 0.03))
+        monkeypatch.setattr(sched, "ESTIMATE_TTL_SECONDS", 0.0)
+        model.cost = 0.0
+        await asyncio.wait_for(scheduler.submit(make_item("runs", deadline=time.monotonic() + 0.03)), GUARD)
+    assert "runs" in model.seen() and "refused" not in model.seen()
+
+
+@pytest.mark.asyncio
 async def test_full_queue_rejects_with_retry_hint() -> None:
     model = FakeModel(cost=0.02)
     observer = RecordingObserver()

@@ -5,6 +5,10 @@
   zetta up                     start the same stack and keep it up until Ctrl-C
   zetta demo --gateway ADDR    run the demo against a stack that is already up
   zetta workers|sessions --gateway ADDR
+  zetta train [--variant state|image] [--data DEMOS.npz ...]
+                               collect oracle demonstrations on LIBERO-Goal and train the Zetta VLA
+  zetta eval-policy [--model zetta-vla-state] [--suites ...] [--seeds N]
+                               closed-loop success per task with Wilson 95% intervals
 """
 
 from __future__ import annotations
@@ -200,8 +204,20 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=0, help="step budget per episode (default: the suite's)")
 
 
+#: Subcommands that hand their arguments to another module's own parser (their --help is theirs).
+_FORWARDED = {
+    "train": "services.policy_worker.vla.train",
+    "eval-policy": "services.policy_worker.vla.evaluate",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `zetta` command."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in _FORWARDED:
+        import importlib
+
+        return int(importlib.import_module(_FORWARDED[argv[0]]).main(argv[1:]))
     parser = argparse.ArgumentParser(prog="zetta", description="Zetta rollout infrastructure")
     sub = parser.add_subparsers(dest="cmd", required=True)
     up = sub.add_parser("up", help="run the whole stack on this machine")

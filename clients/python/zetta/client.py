@@ -67,6 +67,10 @@ class ResetResult:
     observation: dict[str, np.ndarray]
     instruction: str
     max_steps: int
+    #: Where the env worker writes this episode's MP4 when ``record_video`` was asked; "" otherwise.
+    video_path: str = ""
+    #: The episode's ordered milestones M; entry k names element k of the "milestones" tensors.
+    milestone_names: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -82,6 +86,12 @@ class StepResult:
     executed_actions: np.ndarray
     episode_step: int
     info: dict[str, float] = field(default_factory=dict)
+    #: Path of the episode's complete video, on the step that ended a recorded episode.
+    video_path: str = ""
+    #: First milestone of M not observed so far (m* once the episode ended); "" when all were.
+    first_missing_milestone: str = ""
+    #: Milestones of M observed so far, in order.
+    milestones_reached: list[str] = field(default_factory=list)
 
     @property
     def done(self) -> bool:
@@ -101,10 +111,17 @@ class EpisodeSummary:
     stop_reason: str
     wall_ms: float
     policy_calls: int
+    #: Path of the episode's complete video on the env worker; "" when none was recorded.
+    video_path: str = ""
+    #: The episode's ordered milestones M, those observed, and m* (first never observed; "" if none).
+    milestone_names: list[str] = field(default_factory=list)
+    milestones_reached: list[str] = field(default_factory=list)
+    first_missing_milestone: str = ""
 
 
 def _reset_result(m: types_pb2.ResetResult) -> ResetResult:
-    return ResetResult(m.session_id, m.episode_id, decode_observation(m.observation), m.instruction, m.max_steps)
+    return ResetResult(m.session_id, m.episode_id, decode_observation(m.observation), m.instruction, m.max_steps,
+                       video_path=m.video_path, milestone_names=list(m.milestone_names))
 
 
 def _step_result(m: types_pb2.StepResult) -> StepResult:
@@ -118,6 +135,9 @@ def _step_result(m: types_pb2.StepResult) -> StepResult:
         executed_actions=decode(m.executed_actions),
         episode_step=m.episode_step,
         info=dict(m.info),
+        video_path=m.video_path,
+        first_missing_milestone=m.first_missing_milestone,
+        milestones_reached=list(m.milestones_reached),
     )
 
 
@@ -131,11 +151,17 @@ def _summary(m: types_pb2.EpisodeSummary) -> EpisodeSummary:
         stop_reason=types_pb2.StopReason.Name(m.stop_reason).removeprefix("STOP_REASON_").lower(),
         wall_ms=m.wall_ms,
         policy_calls=m.policy_calls,
+        video_path=m.video_path,
+        milestone_names=list(m.milestone_names),
+        milestones_reached=list(m.milestones_reached),
+        first_missing_milestone=m.first_missing_milestone,
     )
 
 
-def _reset_spec(task: str = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> types_pb2.ResetSpec:
-    return types_pb2.ResetSpec(task=str(task), seed=seed, init_state_index=init_state_index, instruction=instruction)
+def _reset_spec(task: str = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
+                record_video: bool = False) -> types_pb2.ResetSpec:
+    return types_pb2.ResetSpec(task=str(task), seed=seed, init_state_index=init_state_index, instruction=instruction,
+                               record_video=record_video)
 
 
 def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0, timeout_ms: int = 0) -> types_pb2.PolicySpec:
@@ -250,11 +276,15 @@ class SessionGroup:
         seed: int | Sequence[int] = 0,
         init_state_index: int | Sequence[int] = 0,
         instruction: str = "",
+        record_video: bool = False,
     ) -> list[ResetResult]:
-        """Start episodes; ``seed`` and ``init_state_index`` may be one value or one per session."""
+        """Start episodes; ``seed`` and ``init_state_index`` may be one value or one per session.
+
+        ``record_video`` has each env worker write the episode as an MP4 (``ResetResult.video_path``).
+        """
         seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
         inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
-        specs = [_reset_spec(str(task), s, i, instruction) for s, i in zip(seeds, inits)]
+        specs = [_reset_spec(str(task), s, i, instruction, record_video) for s, i in zip(seeds, inits)]
         resp = await self.gateway.call("Reset", gateway_pb2.ResetRequest(session_ids=self.ids, specs=specs))
         return [_reset_result(r) for r in resp.results]
 
@@ -295,13 +325,17 @@ class SessionGroup:
         model: str = "",
         max_steps: int = 0,
         execute_steps: int = 0,
+        record_video: bool = False,
     ) -> list[EpisodeSummary]:
-        """Run whole episodes inside the workers (reset first when ``task`` is given)."""
+        """Run whole episodes inside the workers (reset first when ``task`` is given).
+
+        ``record_video`` (with ``task``) writes each episode as an MP4 (``EpisodeSummary.video_path``).
+        """
         specs: list[types_pb2.ResetSpec] = []
         if task is not None:
             seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
             inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
-            specs = [_reset_spec(str(task), s, i) for s, i in zip(seeds, inits)]
+            specs = [_reset_spec(str(task), s, i, "", record_video) for s, i in zip(seeds, inits)]
         resp = await self.gateway.call(
             "RunEpisode",
             gateway_pb2.RunEpisodeRequest(session_ids=self.ids, specs=specs, policy=_policy_spec(model, "", execute_steps),
@@ -329,9 +363,10 @@ class Session:
         self.gateway = gateway
         self.session_id = session_id
 
-    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> ResetResult:
+    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
+                    record_video: bool = False) -> ResetResult:
         """Start an episode."""
-        spec = _reset_spec(str(task), seed, init_state_index, instruction)
+        spec = _reset_spec(str(task), seed, init_state_index, instruction, record_video)
         return _reset_result(await self.gateway._batcher.submit("Reset", self.session_id, spec))
 
     async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0,
@@ -345,10 +380,10 @@ class Session:
         return _step_result(await self.gateway._batcher.submit("ActionStep", self.session_id, encode(np.asarray(action))))
 
     async def run_episode(self, task: str | int | None = None, seed: int = 0, init_state_index: int = 0,
-                          model: str = "", max_steps: int = 0) -> EpisodeSummary:
+                          model: str = "", max_steps: int = 0, record_video: bool = False) -> EpisodeSummary:
         """Run a whole episode in the worker."""
         group = SessionGroup(self.gateway, [types_pb2.SessionInfo(session_id=self.session_id)])
-        return (await group.run_episode(task, seed, init_state_index, model, max_steps))[0]
+        return (await group.run_episode(task, seed, init_state_index, model, max_steps, record_video=record_video))[0]
 
     def stream(self) -> "StepStream":
         """A bidirectional stream for this session's step loop: one stream instead of a call per step."""
@@ -381,9 +416,11 @@ class StepStream:
             raise ZettaError(status, await self._call.details() or "stream closed")
         return resp
 
-    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "") -> ResetResult:
+    async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
+                    record_video: bool = False) -> ResetResult:
         """Start an episode."""
-        req = gateway_pb2.StepStreamRequest(reset=_reset_spec(str(task), seed, init_state_index, instruction))
+        req = gateway_pb2.StepStreamRequest(reset=_reset_spec(str(task), seed, init_state_index, instruction,
+                                                              record_video))
         return _reset_result((await self._roundtrip(req)).reset)
 
     async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0) -> StepResult:

@@ -13,20 +13,22 @@ resource-sharing group: its slots share compiled models and warm environments (s
 
 from __future__ import annotations
 
-import ctypes.util
 import importlib
 import json
 import math
 import os
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
 from services.common.specs import SpecError, TensorSpec
+from services.env_worker import rendering
+from services.env_worker.milestones import milestone_specs
+from services.env_worker.signals import signal_specs
 
 
 @dataclass(frozen=True)
@@ -41,11 +43,17 @@ class ResetSpec:
     seed: int = 0
     init_state_index: int = 0
     instruction: str = ""
+    #: Where to write this episode's MP4 (services/env_worker/video.py); empty records nothing.
+    video_path: str = ""
 
 
 @dataclass
 class StepOutcome:
-    """What one executed action produced, in canonical form."""
+    """What one executed action produced, in canonical form.
+
+    A step taken with ``render=False`` leaves the camera images out of ``observation`` (they
+    are rendered only when an observation that carries them is needed: see rendering.py).
+    """
 
     observation: dict[str, np.ndarray]
     reward: float
@@ -53,6 +61,8 @@ class StepOutcome:
     truncated: bool
     success: bool
     info: dict[str, float]
+    #: Path of the episode's video when this step completed it (the episode ended), else empty.
+    video_path: str = ""
 
 
 class ConfigError(ValueError):
@@ -139,8 +149,28 @@ class Slot(ABC):
         """Start the episode keyed by ``spec``; returns the canonical observation and the instruction."""
 
     @abstractmethod
-    def step(self, action: np.ndarray) -> StepOutcome:
-        """Execute one action that the caller already checked against the family's action spec."""
+    def step(self, action: np.ndarray, render: bool = True) -> StepOutcome:
+        """Execute one action that the caller already checked against the family's action spec.
+
+        ``render=False`` skips the camera images of this step's observation (e.g. on all but the
+        last action of a chunk); :meth:`observe` renders them later if they are asked for.
+        """
+
+    def finish_video(self) -> str:
+        """Complete the current episode's video now; its path, or "" when none is recorded."""
+        return ""
+
+    def milestone_names(self) -> list[str]:
+        """The current episode's ordered milestones M (services/env_worker/milestones.py); [] if none."""
+        return []
+
+    def milestones_reached(self) -> list[str]:
+        """The milestones of M observed so far in the episode, in the order of M."""
+        return []
+
+    def first_missing_milestone(self) -> str:
+        """m*: the first milestone of M not observed so far in the episode; "" when all were (or none exist)."""
+        return ""
 
     @abstractmethod
     def observe(self) -> dict[str, np.ndarray]:
@@ -234,6 +264,14 @@ def camera_option(family: str, config: Mapping[str, Any], valid: Sequence[str]) 
     return list(cameras)
 
 
+def bool_option(family: str, config: Mapping[str, Any], key: str, default: bool) -> bool:
+    """A true/false option; numbers and strings are refused rather than guessed at."""
+    value = config.get(key, default)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{family}: {key} must be true or false, got {value!r}")
+    return value
+
+
 # ---------------------------------------------------------------------------------------------
 # Canonical observations of single-arm manipulation families
 
@@ -274,7 +312,10 @@ def manipulation_schema(
         ),
         TensorSpec(
             "task_object_pos", "float32", (3,), privileged=True,
-            description="position of the object the current goal predicate moves; zeros if none",
+            description=(
+                "position of what the current goal stage moves: the object, or the handle of the drawer, door or "
+                "knob to actuate; zeros if none"
+            ),
         ),
         TensorSpec(
             "task_object_quat", "float32", (4,), privileged=True,
@@ -282,7 +323,10 @@ def manipulation_schema(
         ),
         TensorSpec(
             "task_target_pos", "float32", (3,), privileged=True,
-            description="position of the goal's target object, region or site; zeros if the goal has none",
+            description=(
+                "position of the stage's target object, region or site (for a handle: where it must move to); "
+                "zeros if the stage has none"
+            ),
         ),
         TensorSpec(
             "task_object_bbox", "float32", (6,), privileged=True,
@@ -301,6 +345,7 @@ def manipulation_schema(
             description="per object: pos, quat, pos and quat relative to the eef; zero-padded",
         ),
     ]
+    specs += milestone_specs() + signal_specs()  # mu_t and phi_t, privileged
     specs += [
         TensorSpec(camera_obs_name(c), "uint8", (camera_size, camera_size, 3), description=f"RGB of {c}, upright")
         for c in cameras
@@ -323,15 +368,19 @@ def zero_padded(values: np.ndarray, length: int, what: str) -> np.ndarray:
     return out
 
 
-def normalize_observation(raw: Mapping[str, Any], schema: Mapping[str, TensorSpec]) -> dict[str, np.ndarray]:
+def normalize_observation(
+    raw: Mapping[str, Any], schema: Mapping[str, TensorSpec], optional: Collection[str] = ()
+) -> dict[str, np.ndarray]:
     """Turn a family's raw observation into fresh canonical arrays checked against the schema.
 
     Values are copied so a caller never holds a view into simulator buffers that the next step
-    overwrites.
+    overwrites. Names in ``optional`` (camera images not rendered for this step) may be absent.
     """
     out: dict[str, np.ndarray] = {}
     for name, spec in schema.items():
         if name not in raw:
+            if name in optional:
+                continue
             raise SpecError(f"{name}: missing from the family's observation (it has {sorted(raw)})")
         array = np.array(raw[name], dtype=spec.dtype)
         if array.size != math.prod(spec.shape):
@@ -349,18 +398,11 @@ def normalize_observation(raw: Mapping[str, Any], schema: Mapping[str, TensorSpe
 def select_gl_backend() -> str:
     """Pick MuJoCo's OpenGL backend before a simulator is imported, unless MUJOCO_GL is set.
 
-    Measured on the 2-core CPU machines: headless EGL through Mesa's software rasterizer works
-    (libegl1 + libegl-mesa0); OSMesa is the fallback when no EGL library exists. Returns the
-    backend in effect, or "" when neither library is present (state-only configs still work).
+    EGL on an NVIDIA GPU, else OSMesa when installed, else EGL through Mesa's software
+    rasterizer (rules and measurements: services/env_worker/rendering.py). Returns the backend
+    in effect, or "" when no GL library is present (state-only configs still work).
     """
-    if os.environ.get("MUJOCO_GL"):
-        return os.environ["MUJOCO_GL"]
-    for backend, library in (("egl", "EGL"), ("osmesa", "OSMesa")):
-        if ctypes.util.find_library(library):
-            os.environ["MUJOCO_GL"] = backend
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
-            return backend
-    return ""
+    return rendering.select_gl_backend()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -417,15 +459,26 @@ class EpisodeSlot(Slot):
 
     Subclasses implement the simulator side in :meth:`_start` and :meth:`_advance` and return raw
     observations; this class normalizes them against the schema.
+
+    Camera images and videos come from ``renderer`` (rendering.SlotRenderer), here and not in the
+    subclasses, so frames are rendered only when an observation or a video frame needs them:
+    after a reset (not on its settle steps), after a step taken with ``render=True``, and on
+    :meth:`observe` when the last step skipped them.
     """
 
-    def __init__(self, schema: Mapping[str, TensorSpec]) -> None:
+    def __init__(self, schema: Mapping[str, TensorSpec], renderer: rendering.SlotRenderer | None = None) -> None:
         self._schema = schema
         self._raw: Mapping[str, Any] | None = None
         self._step = 0
         self._max_steps = 0
         self._over = False
         self._closed = False
+        self._renderer = renderer
+        self._image_names: tuple[str, ...] = renderer.image_names if renderer is not None else ()
+        #: Images of the current simulator state once rendered; None until then.
+        self._images: dict[str, np.ndarray] | None = None
+        self._video: Any = None  # video.VideoRecorder while an episode is recorded
+        self._video_path = ""
 
     @abstractmethod
     def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
@@ -441,36 +494,85 @@ class EpisodeSlot(Slot):
 
     def reset(self, spec: ResetSpec) -> tuple[dict[str, np.ndarray], str]:
         self._check_open()
-        self._raw = None
+        self.finish_video()
+        self._raw, self._images, self._video_path = None, None, ""
         raw, instruction, max_steps = self._start(spec)
+        raw = self._with_images(raw, render=True)
         self._raw, self._step, self._max_steps, self._over = raw, 0, max_steps, False
+        if spec.video_path:
+            self._start_video(spec.video_path)
         return normalize_observation(raw, self._schema), spec.instruction or instruction
 
-    def step(self, action: np.ndarray) -> StepOutcome:
+    def step(self, action: np.ndarray, render: bool = True) -> StepOutcome:
         self._check_open()
         if self._raw is None:
             raise EpisodeError("no episode is running: reset the slot first")
         if self._over:
             raise EpisodeError(f"the episode ended after {self._step} steps: reset the slot first")
         raw, reward, success, info = self._advance(action)
+        self._images = None
+        if self._video is not None:
+            self._record_frame()
+        raw = self._with_images(raw, render)
         self._raw = raw
         self._step += 1
         truncated = self._step >= self._max_steps
         self._over = success or truncated
+        video_path = self.finish_video() if self._over and self._video is not None else ""
         return StepOutcome(
-            observation=normalize_observation(raw, self._schema),
+            observation=normalize_observation(raw, self._schema, optional=self._image_names),
             reward=float(reward),
             terminated=success,
             truncated=truncated,
             success=success,
             info=info,
+            video_path=video_path,
         )
 
     def observe(self) -> dict[str, np.ndarray]:
         self._check_open()
         if self._raw is None:
             raise EpisodeError("no episode is running: reset the slot first")
+        if any(name not in self._raw for name in self._image_names):
+            self._raw = self._with_images(self._raw, render=True)
         return normalize_observation(self._raw, self._schema)
+
+    @property
+    def renderer(self) -> rendering.SlotRenderer | None:
+        """What renders this slot's cameras and video frames (None for a family without cameras)."""
+        return self._renderer
+
+    def finish_video(self) -> str:
+        if self._video is not None:
+            self._video.close()
+            self._video = None
+        return self._video_path
+
+    def _with_images(self, raw: Mapping[str, Any], render: bool) -> Mapping[str, Any]:
+        """``raw`` plus the camera images of the current state: rendered now if ``render``, else
+        only those a video frame already rendered."""
+        if not self._image_names:
+            return raw
+        if render and self._images is None:
+            self._images = self._renderer.images() if self._renderer is not None else {}
+        return {**raw, **self._images} if self._images else raw
+
+    def _start_video(self, path: str) -> None:
+        from services.env_worker.video import VideoRecorder
+
+        if self._renderer is None:
+            raise ResetError("this family renders no frames, so it cannot record a video")
+        width, height = self._renderer.video_size()
+        self._video = VideoRecorder(path, self._renderer.fps(), width, height)
+        self._video_path = path
+        self._record_frame()
+
+    def _record_frame(self) -> None:
+        """Append the current state to the video, sharing the observation's render if there is one."""
+        assert self._renderer is not None and self._video is not None
+        if self._image_names:
+            self._with_images({}, render=True)  # fills self._images for this state
+        self._video.add(self._renderer.video_frame(self._images))
 
     @property
     def episode_step(self) -> int:
@@ -479,7 +581,8 @@ class EpisodeSlot(Slot):
     def close(self) -> None:
         if not self._closed:
             self._closed = True
-            self._raw = None
+            self.finish_video()
+            self._raw, self._images = None, None
             self._release()
 
     def _check_open(self) -> None:

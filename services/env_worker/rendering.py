@@ -1,0 +1,439 @@
+"""Offscreen rendering for env slots: the GL backend, on-demand camera frames, reflections.
+
+GL backend
+    MuJoCo and robosuite read ``MUJOCO_GL`` once, when they are imported, so the choice is made
+    before any simulator import (:func:`select_gl_backend`, called by the family modules and at
+    worker start, where the choice and its reason are logged). In order:
+
+    1. ``MUJOCO_GL`` set by the operator: kept as is (``PYOPENGL_PLATFORM`` follows it).
+    2. An NVIDIA GPU (``/dev/nvidia<N>``) and NVIDIA's EGL library (``libEGL_nvidia``): ``egl``,
+       rendering on the GPU (``MUJOCO_EGL_DEVICE_ID`` picks the device; the first one otherwise).
+    3. ``libOSMesa`` installed (Debian ``libosmesa6``): ``osmesa``, Mesa's software renderer.
+    4. ``libEGL`` installed (``libegl1`` + ``libegl-mesa0``): ``egl`` through Mesa's software
+       rasterizer (llvmpipe). On the 2-core CPU machines it costs the same per frame as OSMesa
+       (see docs/simulation.md, "Rendering").
+    5. Neither: "" -- state-only configs work, a config with cameras fails at its first render.
+
+On-demand frames
+    robosuite's camera observables render every camera on every ``env.step`` (and on every settle
+    step of a LIBERO reset) whether or not anyone looks at the image. Environments are built with
+    ``use_camera_obs=False`` and no robosuite render context; a slot renders its cameras through
+    :class:`SlotRenderer` only when an observation that carries images is produced: after a
+    reset, and after the last action of an executed chunk (``Slot.step(action, render=False)``
+    for the others), or when a video frame is due.
+
+Contexts and threads
+    Each environment carries one GL context and one ``MjrContext`` (textures uploaded once), made
+    on first render and kept with the environment while it sits in its group's pool. A GL context
+    is current on one thread at a time and environments move between slot threads (pool reuse,
+    LIBERO task switches), so :class:`SceneRenderer` makes its context current for each batch of
+    cameras and releases it afterwards (a few microseconds against milliseconds per frame).
+
+Reflections
+    ``env_config`` ``reflections: false`` zeroes ``model.mat_reflectance`` of the slot's model
+    (a model is shared only within its config's group, so all its users asked for the same).
+    MuJoCo draws a reflective plane by rendering the
+    scene a second time, mirrored; without it a frame costs about a third (bench/bench_render.py).
+    Off changes what the policy sees, so the default stays on.
+
+This module imports MuJoCo only inside the renderer classes: importing it (as
+``families/base.py`` does) loads no simulator.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import glob
+import logging
+import os
+import sys
+import threading
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Camera a video shows when the session's config renders no camera.
+DEFAULT_VIDEO_CAMERA = "agentview"
+
+
+# ---------------------------------------------------------------------------------------------
+# GL backend
+
+
+@dataclass(frozen=True)
+class GLChoice:
+    """The GL backend of this process and why it was chosen."""
+
+    backend: str
+    reason: str
+    #: True when MUJOCO_GL was set before the choice (by the operator, or a prior import).
+    preset: bool = False
+
+    def describe(self) -> str:
+        """One line for the start-up log."""
+        return f"MUJOCO_GL={self.backend or '<none>'} ({self.reason})"
+
+
+def nvidia_gpu_present() -> bool:
+    """An NVIDIA GPU is visible to this process (device nodes or the driver's proc entries)."""
+    return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/proc/driver/nvidia/gpus/*"))
+
+
+def choose_gl_backend(
+    environ: Mapping[str, str],
+    find_library: Callable[[str], str | None] = ctypes.util.find_library,
+    nvidia: bool | None = None,
+) -> GLChoice:
+    """The backend the rules in the module docstring give, without changing anything."""
+    preset = environ.get("MUJOCO_GL", "").strip().lower()
+    if preset:
+        return GLChoice(preset, "MUJOCO_GL set in the environment", preset=True)
+    gpu = nvidia_gpu_present() if nvidia is None else nvidia
+    egl, osmesa = find_library("EGL"), find_library("OSMesa")
+    note = ""
+    if gpu:
+        if egl and find_library("EGL_nvidia"):
+            return GLChoice("egl", "NVIDIA GPU: EGL on the device")
+        note = "NVIDIA GPU without libEGL_nvidia (driver capability 'graphics' missing?); "
+    if osmesa:
+        return GLChoice("osmesa", note + f"no GPU EGL: OSMesa software renderer ({osmesa})")
+    if egl:
+        return GLChoice("egl", note + f"no GPU EGL and no OSMesa: EGL through Mesa's software rasterizer ({egl})")
+    return GLChoice("", note + "no EGL or OSMesa library: state-only configs only")
+
+
+_CHOICE: GLChoice | None = None
+_CHOICE_LOCK = threading.Lock()
+
+
+def select_gl_backend() -> str:
+    """Choose the backend once per process and export it; returns it ("" when none exists).
+
+    Must run before robosuite or PyOpenGL is imported: both bind MUJOCO_GL / PYOPENGL_PLATFORM
+    at import time (this module's renderer picks its context class itself, so an earlier
+    ``import mujoco`` does no harm). When they are already loaded nothing is changed.
+    """
+    global _CHOICE
+    with _CHOICE_LOCK:
+        if _CHOICE is None:
+            choice = choose_gl_backend(os.environ)
+            bound = [m for m in ("robosuite", "OpenGL") if m in sys.modules]
+            if not choice.preset and bound:
+                choice = GLChoice("", f"{' and '.join(bound)} imported before a backend was chosen; MuJoCo's default")
+            elif choice.backend:
+                os.environ["MUJOCO_GL"] = choice.backend
+                if choice.backend in ("egl", "osmesa"):
+                    os.environ.setdefault("PYOPENGL_PLATFORM", choice.backend)
+            _CHOICE = choice
+        return _CHOICE.backend
+
+
+def gl_backend_choice() -> GLChoice:
+    """The backend in effect and the reason, choosing it first if nobody has."""
+    select_gl_backend()
+    assert _CHOICE is not None
+    return _CHOICE
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene rendering
+
+
+def _release_current_context() -> None:
+    """Make no GL context current on this thread, so another thread may take ours."""
+    backend = os.environ.get("MUJOCO_GL", "").lower()
+    if backend == "egl":
+        import mujoco.egl
+        from mujoco.egl import egl_ext as EGL
+
+        if mujoco.egl.EGL_DISPLAY is not None:
+            EGL.eglMakeCurrent(mujoco.egl.EGL_DISPLAY, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+    elif backend == "osmesa":
+        from OpenGL import GL, osmesa
+
+        osmesa.OSMesaMakeCurrent(None, None, GL.GL_FLOAT, 0, 0)
+    elif backend in ("glfw", ""):
+        import glfw
+
+        glfw.make_context_current(None)
+
+
+def _gl_context_class() -> Any:
+    """MuJoCo's GL context class for the backend in effect.
+
+    Chosen here rather than through ``mujoco.gl_context``, which binds MUJOCO_GL when MuJoCo is
+    first imported: a process that imported MuJoCo before the backend was chosen still renders
+    headless instead of falling back to GLFW (which needs a display).
+    """
+    backend = os.environ.get("MUJOCO_GL", "").lower()
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    else:
+        from mujoco.gl_context import GLContext
+    return GLContext
+
+
+_RENDERER_LOGGED = False
+
+
+class SceneRenderer:
+    """One GL context and MuJoCo render context for one (model, data) pair.
+
+    Not bound to a thread: every :meth:`render` takes the context and gives it back. Calls on one
+    renderer must not overlap (a slot uses its environment from one thread at a time); a lock
+    makes an overlap wait instead of corrupting the frame.
+    """
+
+    def __init__(self, model: Any, data: Any, width: int, height: int) -> None:
+        import mujoco
+
+        GLContext = _gl_context_class()  # noqa: N806
+        self.model, self.data = model, data
+        vis = model.vis.global_
+        # The offscreen buffer bounds every frame; grow it before the context is made.
+        vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
+        self._lock = threading.Lock()
+        self._gl = GLContext(vis.offwidth, vis.offheight)
+        self._con: Any = None
+        with self._current():
+            self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+            _log_renderer_once()
+        self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 4 * model.ngeom))
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._option = mujoco.MjvOption()
+        # As robosuite's offscreen renderer: visual meshes (group 1) on, collision meshes (group 0) off.
+        self._option.geomgroup[0], self._option.geomgroup[1] = 0, 1
+        self._perturb = mujoco.MjvPerturb()
+        self.frames = 0
+
+    @contextmanager
+    def _current(self) -> Iterator[None]:
+        self._gl.make_current()
+        try:
+            yield
+        finally:
+            _release_current_context()
+
+    def camera_id(self, name: str) -> int:
+        """Id of a named camera of the model; ValueError naming the model's cameras if unknown."""
+        import mujoco
+
+        cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        if cid < 0:
+            names = [self.model.camera(i).name for i in range(self.model.ncam)]
+            raise ValueError(f"camera {name!r} is not in the model; its cameras: {names}")
+        return cid
+
+    def render(self, camera_ids: Sequence[int], width: int, height: int) -> list[np.ndarray]:
+        """Upright RGB frames (row 0 at the top) of the current state from each camera."""
+        import mujoco
+
+        if self._con is None:
+            raise RuntimeError("the renderer is closed")
+        rect = mujoco.MjrRect(0, 0, width, height)
+        frames = []
+        with self._lock, self._current():
+            if width > self._con.offWidth or height > self._con.offHeight:
+                raise ValueError(f"{width}x{height} exceeds the offscreen buffer {self._con.offWidth}x{self._con.offHeight}")
+            for cid in camera_ids:
+                self._camera.fixedcamid = cid
+                mujoco.mjv_updateScene(
+                    self.model, self.data, self._option, self._perturb, self._camera,
+                    mujoco.mjtCatBit.mjCAT_ALL, self._scene,
+                )
+                mujoco.mjr_render(rect, self._scene, self._con)
+                rgb = np.empty((height, width, 3), dtype=np.uint8)
+                mujoco.mjr_readPixels(rgb, None, rect, self._con)
+                frames.append(np.ascontiguousarray(rgb[::-1]))  # OpenGL's origin is bottom-left
+        self.frames += len(frames)
+        return frames
+
+    def close(self) -> None:
+        """Free the render context and the GL context (idempotent)."""
+        if self._con is None:
+            return
+        try:
+            with self._lock, self._current():
+                self._con.free()
+        finally:
+            self._con = None
+            self._gl.free()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown may have torn GL down already
+            pass
+
+
+def _log_renderer_once() -> None:
+    """Warn once if an NVIDIA GPU is present but the first context renders in software."""
+    global _RENDERER_LOGGED
+    if _RENDERER_LOGGED:
+        return
+    _RENDERER_LOGGED = True
+    try:
+        from OpenGL import GL
+
+        renderer = (GL.glGetString(GL.GL_RENDERER) or b"?").decode(errors="replace")
+        version = (GL.glGetString(GL.GL_VERSION) or b"?").decode(errors="replace")
+    except Exception as exc:  # noqa: BLE001 - informational only
+        log.debug("rendering: %s; OpenGL renderer unknown (%s)", gl_backend_choice().describe(), exc)
+        return
+    log.debug("rendering: %s; OpenGL renderer %s, %s", gl_backend_choice().describe(), renderer, version)
+    if nvidia_gpu_present() and "llvmpipe" in renderer.lower():
+        log.warning("rendering: an NVIDIA GPU is present but frames are rendered in software (%s)", renderer)
+
+
+def gl_renderer_string() -> str:
+    """The OpenGL renderer of a throw-away context (e.g. 'llvmpipe (LLVM 15...)'), for benchmarks."""
+    ctx = _gl_context_class()(16, 16)
+    try:
+        ctx.make_current()
+        from OpenGL import GL
+
+        return (GL.glGetString(GL.GL_RENDERER) or b"?").decode(errors="replace")
+    finally:
+        _release_current_context()
+        ctx.free()
+
+
+def _interchangeable(a: Any, b: Any) -> bool:
+    """Models of one sharing template, differing at most in body poses (sharing.interchangeable)."""
+    try:
+        from services.env_worker.sharing import interchangeable
+    except ImportError:  # pragma: no cover - sharing is part of the worker; be safe if it moves
+        return False
+    return bool(interchangeable(a, b))
+
+
+def disable_reflections(model: Any) -> None:
+    """Zero ``model.mat_reflectance``: reflective materials render as plain ones (physics unaffected)."""
+    model.mat_reflectance[:] = 0
+
+
+# ---------------------------------------------------------------------------------------------
+# What a slot renders
+
+
+def camera_image_name(camera: str) -> str:
+    """Canonical image name of a camera (as in the observation schema)."""
+    return f"{camera.removeprefix('robot0_')}_image"
+
+
+class SlotRenderer:
+    """The frames a slot needs, rendered from whichever environment the slot holds right now.
+
+    ``env`` returns the slot's current robosuite environment (LIBERO slots swap environments on a
+    task change); each environment keeps its own :class:`SceneRenderer` as an attribute, so the
+    render context travels with it through the group's pool.
+    """
+
+    _ATTR = "_zetta_scene_renderer"
+
+    def __init__(
+        self,
+        env: Callable[[], Any],
+        cameras: Sequence[str],
+        size: int,
+        reflections: bool = True,
+        video_camera: str = DEFAULT_VIDEO_CAMERA,
+    ) -> None:
+        self._env = env
+        self.cameras = tuple(cameras)
+        self.size = size
+        self.reflections = reflections
+        self.video_camera = video_camera
+        self.image_names = tuple(camera_image_name(c) for c in self.cameras)
+        #: Camera renders done by this slot (one per camera per frame).
+        self.frames_rendered = 0
+
+    @classmethod
+    def for_config(cls, env: Callable[[], Any], config: Mapping[str, Any]) -> SlotRenderer:
+        """The renderer a family config asks for (``cameras``, ``camera_size``, ``reflections``)."""
+        return cls(env, config.get("cameras", ()), config.get("camera_size", 128), config.get("reflections", True))
+
+    def scene(self) -> SceneRenderer:
+        """The scene renderer of the slot's current environment, made on first use.
+
+        Environments of a group share their model (services/env_worker/sharing.py); a LIBERO
+        reset may move the environment to another model of the same template (other fixture
+        poses). Such models have the same meshes, textures and materials, so the renderer keeps
+        its context and only follows the model; any other change makes a new context.
+        """
+        env = self._env()
+        model, data = env.sim.model._model, env.sim.data._data
+        scene: SceneRenderer | None = getattr(env, self._ATTR, None)
+        if scene is not None and (scene.model is not model or scene.data is not data):
+            if scene.data is data and _interchangeable(scene.model, model):
+                scene.model = model
+            else:
+                scene.close()
+                scene = None
+        if not self.reflections:
+            # Idempotent; every model of a group (a shared template or a private variant) has the
+            # same config, so zeroing a model other slots render is what they ask for too.
+            disable_reflections(model)
+        if scene is None:
+            scene = SceneRenderer(model, data, self.size, self.size)
+            setattr(env, self._ATTR, scene)
+        return scene
+
+    def warm(self) -> None:
+        """Make the render context now if the slot has cameras and an environment.
+
+        Creating it uploads the model's textures (about 1 s on the CPU renderer, during which
+        MuJoCo holds the GIL), so the worker does it while opening slots, where environment
+        builds already take their time, instead of inside the first reset.
+        """
+        if self.cameras and self._env() is not None:
+            self.scene()
+
+    def render(self, cameras: Sequence[str]) -> list[np.ndarray]:
+        """Upright frames of the named cameras at the configured size, for the current state."""
+        scene = self.scene()
+        frames = scene.render([scene.camera_id(c) for c in cameras], self.size, self.size)
+        self.frames_rendered += len(frames)
+        return frames
+
+    def images(self) -> dict[str, np.ndarray]:
+        """Canonical image tensors of the configured cameras for the current simulator state."""
+        if not self.cameras:
+            return {}
+        return dict(zip(self.image_names, self.render(self.cameras), strict=True))
+
+    def video_frame(self, images: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """One video frame: the configured cameras side by side, or the video camera if none.
+
+        ``images`` are this state's observation images when they were rendered already.
+        """
+        if self.cameras:
+            if images is None or any(n not in images for n in self.image_names):
+                images = self.images()
+            return np.concatenate([images[n] for n in self.image_names], axis=1)
+        return self.render([self.video_camera])[0]
+
+    def video_size(self) -> tuple[int, int]:
+        """Width and height of :meth:`video_frame`."""
+        return self.size * max(1, len(self.cameras)), self.size
+
+    def fps(self) -> float:
+        """Control rate of the environment: one video frame per executed action."""
+        return float(getattr(self._env(), "control_freq", 20))
+
+
+def close_env_renderer(env: Any) -> None:
+    """Free the render context an environment carries, if any (before ``env.close()``)."""
+    scene = getattr(env, SlotRenderer._ATTR, None)
+    if scene is not None:
+        scene.close()
+        setattr(env, SlotRenderer._ATTR, None)

@@ -1,0 +1,163 @@
+"""Closed-loop evaluation of a served policy on LIBERO suites, in-process, in worker processes.
+
+Each worker builds the family once and runs (task, seed, init state) episodes with the policy
+loaded in the same process (no gRPC: this measures the policy, not the stack). The policy acts
+on the observation, its chunk's first ``execute_steps`` actions run, then it is asked again.
+Results are one JSON row per episode; :func:`table` renders per-task rates with Wilson 95 %
+intervals.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import os
+import time
+from pathlib import Path
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    if n == 0:
+        return (0.0, 0.0)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results) -> None:
+    os.environ.update(env)
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    from services.env_worker.families.base import ResetSpec, get_family
+    from services.policy_worker.models.base import load_model
+
+    fam_cls = get_family("libero")
+    family = fam_cls(fam_cls.canonical_config({"suite": suite}))
+    slot = family.init()
+    policy = load_model(model)
+    names = [s.name for s in policy.input_specs()]
+    while True:
+        job = jobs.get()
+        if job is None:
+            break
+        task, seed, init = job
+        t0 = time.monotonic()
+        try:
+            obs, instruction = slot.reset(ResetSpec(task=str(task), seed=seed, init_state_index=init))
+            success, steps, done = False, 0, False
+            while not done:
+                chunk = policy.infer({n: obs[n][None] for n in names}, [instruction])[0]
+                for action in chunk[: max(1, execute_steps)]:
+                    out = slot.step(np.asarray(action, np.float32))
+                    obs, steps = out.observation, steps + 1
+                    if out.success or out.terminated or out.truncated:
+                        success, done = out.success, True
+                        break
+            results.put({"suite": suite, "task": task, "seed": seed, "init_state_index": init,
+                         "instruction": instruction, "success": bool(success), "steps": steps,
+                         "seconds": round(time.monotonic() - t0, 2)})
+        except Exception as exc:  # noqa: BLE001 - reported as an invalid episode, not a failure
+            results.put({"suite": suite, "task": task, "seed": seed, "init_state_index": init, "error": repr(exc)})
+    slot.close()
+
+
+def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_path: str, processes: int = 2,
+             execute_steps: int = 4, env: dict | None = None, log=print) -> list[dict]:
+    ctx = mp.get_context("spawn")
+    jobs, results = ctx.Queue(), ctx.Queue()
+    episodes = [(t, s, s % 50) for s in seeds for t in tasks]
+    for e in episodes:
+        jobs.put(e)
+    for _ in range(processes):
+        jobs.put(None)
+    procs = [ctx.Process(target=_worker, args=(model, env or {}, suite, execute_steps, jobs, results), daemon=True)
+             for _ in range(processes)]
+    for p in procs:
+        p.start()
+    rows = []
+    Path(out_path).parent.mkdir(parents=True, exist_ok=True)
+    with open(out_path, "a") as f:
+        while len(rows) < len(episodes):
+            try:
+                r = results.get(timeout=10)
+            except Exception:  # noqa: BLE001 - queue.Empty
+                if not any(p.is_alive() for p in procs):
+                    break
+                continue
+            r.update(model=model, execute_steps=execute_steps, env=env or {})
+            rows.append(r)
+            f.write(json.dumps(r) + "\n")
+            f.flush()
+            if len(rows) % 10 == 0:
+                ok = sum(x.get("success", False) for x in rows)
+                log(f"{suite}: {len(rows)}/{len(episodes)} episodes, {ok} successes")
+    for p in procs:
+        p.join(timeout=10)
+        if p.is_alive():
+            p.terminate()
+    return rows
+
+
+def table(rows: list[dict], task_names: dict[str, list[str]] | None = None) -> str:
+    """Markdown: per suite and task, successes/episodes, rate, Wilson 95 % interval, seeds."""
+    lines = ["| suite | task | successes / episodes | rate | Wilson 95% | seeds |", "|---|---|---|---|---|---|"]
+    by: dict[tuple[str, int], list[dict]] = {}
+    for r in rows:
+        if "error" in r:
+            continue
+        by.setdefault((r["suite"], r["task"]), []).append(r)
+    suites = sorted({k[0] for k in by})
+    for suite in suites:
+        total_s = total_n = 0
+        for (s, t), rs in sorted(by.items()):
+            if s != suite:
+                continue
+            k, n = sum(r["success"] for r in rs), len(rs)
+            total_s, total_n = total_s + k, total_n + n
+            lo, hi = wilson(k, n)
+            seeds = sorted(r["seed"] for r in rs)
+            name = (task_names or {}).get(suite, [])
+            label = f"{t} {name[t]}" if t < len(name) else str(t)
+            lines.append(f"| {suite} | {label} | {k}/{n} | {k / n:.0%} | {lo:.0%}-{hi:.0%} | {seeds[0]}-{seeds[-1]} |")
+        lo, hi = wilson(total_s, total_n)
+        lines.append(f"| **{suite}** | **all** | **{total_s}/{total_n}** | **{total_s / max(total_n, 1):.0%}** | "
+                     f"**{lo:.0%}-{hi:.0%}** | |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(description="evaluate a policy on LIBERO suites")
+    p.add_argument("--model", default="zetta-vla-state")
+    p.add_argument("--suites", default="libero_goal,libero_goal_task,libero_goal_swap")
+    p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
+    p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed % 50")
+    p.add_argument("--seed-offset", type=int, default=0)
+    p.add_argument("--execute-steps", type=int, default=4)
+    p.add_argument("--processes", type=int, default=2)
+    p.add_argument("--quantize", default="", help="ZETTA_VLA_QUANTIZE for the policy (e.g. w8a8)")
+    p.add_argument("--checkpoint", default="")
+    p.add_argument("--out", default="out/eval/episodes.jsonl")
+    a = p.parse_args(argv)
+    env = {}
+    if a.quantize:
+        env["ZETTA_VLA_QUANTIZE"] = a.quantize
+    if a.checkpoint:
+        env["ZETTA_VLA_CHECKPOINT"] = a.checkpoint
+    tasks = [int(t) for t in a.tasks.split(",")]
+    seeds = list(range(a.seed_offset, a.seed_offset + a.seeds))
+    rows = []
+    for suite in a.suites.split(","):
+        rows += evaluate(a.model, suite, tasks, seeds, a.out, a.processes, a.execute_steps, env)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

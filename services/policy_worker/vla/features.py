@@ -1,0 +1,42 @@
+"""Which observation tensors the state-based VLA reads, and how they become one vector.
+
+Only what a real robot (plus an object tracker) would report: proprioception and the
+per-object state. The goal-derived privileged ``task_*`` tensors are deliberately left out:
+they name the object to move and its target, which would leak the goal and erase exactly the
+gap (LIBERO-PRO task redirection and position swap) the harness is meant to close.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.common.specs import TensorSpec
+
+#: (name, width) in the order they are concatenated.
+STATE_INPUTS: tuple[tuple[str, int], ...] = (
+    ("robot0_eef_pos", 3),
+    ("robot0_eef_quat", 4),
+    ("robot0_gripper_qpos", 2),
+    ("robot0_joint_pos", 7),
+    ("object_state", 140),
+)
+STATE_DIM = sum(w for _, w in STATE_INPUTS)
+ACTION_DIM = 7
+#: Image inputs of the image-based variant (LIBERO camera names as canonical obs names).
+IMAGE_INPUTS: tuple[str, ...] = ("agentview_image",)
+PROPRIO_INPUTS: tuple[tuple[str, int], ...] = STATE_INPUTS[:4]
+PROPRIO_DIM = sum(w for _, w in PROPRIO_INPUTS)
+
+
+def state_specs(image_size: int = 0) -> list[TensorSpec]:
+    """Input specs of the state variant (``image_size`` 0) or the image variant."""
+    if image_size:
+        specs = [TensorSpec(n, "float32", (w,)) for n, w in PROPRIO_INPUTS]
+        specs += [TensorSpec(n, "uint8", (image_size, image_size, 3)) for n in IMAGE_INPUTS]
+        return specs
+    return [TensorSpec(n, "float32", (w,), privileged=(n == "object_state")) for n, w in STATE_INPUTS]
+
+
+def state_vector(batch: dict[str, np.ndarray], inputs=STATE_INPUTS) -> np.ndarray:
+    """[B, D] float32 concatenation of the state inputs of a stacked batch."""
+    return np.concatenate([np.asarray(batch[n], dtype=np.float32).reshape(len(batch[n]), w) for n, w in inputs], axis=1)

@@ -1,0 +1,109 @@
+"""The Zetta VLA as a served :class:`PolicyModel`, and its checkpoint format.
+
+A checkpoint is a directory: ``model.pt`` (float16 weights + normalization buffers, float32 at
+load), ``config.json`` (architecture, training config, data recipe, instruction-embedding cache).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.common.specs import TensorSpec
+from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, state_specs, state_vector
+from services.policy_worker.vla.model import VLAConfig, ZettaVLA
+from services.policy_worker.vla.text import TextEncoder
+
+#: Shipped checkpoints, relative to the repository root.
+CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
+STATE_CHECKPOINT = CHECKPOINT_ROOT / "zetta-vla-state"
+IMAGE_CHECKPOINT = CHECKPOINT_ROOT / "zetta-vla-image"
+
+
+def save_checkpoint(path: str | os.PathLike, model: ZettaVLA, meta: dict, text_cache: dict[str, np.ndarray]) -> None:
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    state = {k: (v.half() if v.is_floating_point() and not k.endswith(("_mean", "_std")) else v)
+             for k, v in model.state_dict().items()}
+    torch.save(state, path / "model.pt")
+    doc = {"model": model.cfg.to_dict(), **meta,
+           "instruction_embeddings": {k: [round(float(x), 6) for x in v] for k, v in sorted(text_cache.items())}}
+    (path / "config.json").write_text(json.dumps(doc, indent=1))
+
+
+def load_checkpoint(path: str | os.PathLike) -> tuple[ZettaVLA, dict, dict[str, np.ndarray]]:
+    path = Path(path)
+    doc = json.loads((path / "config.json").read_text())
+    model = ZettaVLA(VLAConfig.from_dict(doc["model"]))
+    state = torch.load(path / "model.pt", map_location="cpu", weights_only=True)
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    model.eval()
+    cache = {k: np.asarray(v, np.float32) for k, v in doc.get("instruction_embeddings", {}).items()}
+    return model, doc, cache
+
+
+class ZettaVLAPolicy:
+    """Monolithic serving of both stages in one process (the split mode lives in ``split.py``).
+
+    ``encode_batch`` and ``act_batch`` are the two stages on numpy in and out, so the split
+    server and the quantization plug-in can work on either one alone.
+    """
+
+    def __init__(self, checkpoint: str | os.PathLike = STATE_CHECKPOINT, name: str = "zetta-vla-state",
+                 quantize: str = "", device: str = "cpu", threads: int = 0) -> None:
+        if threads:
+            torch.set_num_threads(threads)
+        self.model, self.meta, cache = load_checkpoint(checkpoint)
+        self.device = torch.device(device)
+        self.model.to(self.device)
+        self.cfg = self.model.cfg
+        self.name = name
+        self.chunk_size = self.cfg.chunk
+        self.text = TextEncoder(cache)
+        self.quantized: list[str] = []
+        if quantize:
+            from services.policy_worker.vla.quant import quantize_modules
+
+            self.quantized = quantize_modules(self.model, quantize.split(","))
+
+    def input_specs(self) -> list[TensorSpec]:
+        return state_specs(self.cfg.image_size)
+
+    @torch.inference_mode()
+    def encode_batch(self, batch: dict[str, np.ndarray], instructions: list[str]) -> torch.Tensor:
+        """Stage 1: prefix [B, prefix_tokens, width] on the model's device."""
+        text = torch.from_numpy(self.text.encode(instructions)).to(self.device)
+        if self.cfg.image_size:
+            state = torch.from_numpy(state_vector(batch, PROPRIO_INPUTS)).to(self.device)
+            image = torch.from_numpy(np.ascontiguousarray(batch[IMAGE_INPUTS[0]])).to(self.device)
+            return self.model.encode(state, text, image)
+        state = torch.from_numpy(state_vector(batch, STATE_INPUTS)).to(self.device)
+        return self.model.encode(state, text)
+
+    @torch.inference_mode()
+    def act_batch(self, prefix: torch.Tensor) -> np.ndarray:
+        """Stage 2: actions [B, chunk, 7] float32."""
+        return self.model.act(prefix.to(self.device)).float().cpu().numpy()
+
+    def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
+        return self.act_batch(self.encode_batch(batch, instructions))
+
+
+def _threads() -> int:
+    # One intra-op thread by default: a policy worker shares its cores with env workers, and
+    # spinning OpenMP threads on oversubscribed cores cost far more than they give.
+    return int(os.environ.get("ZETTA_TORCH_THREADS", "1"))
+
+
+def make_state_policy() -> ZettaVLAPolicy:
+    return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_CHECKPOINT", str(STATE_CHECKPOINT)),
+                          quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), threads=_threads())
+
+
+def make_image_policy() -> ZettaVLAPolicy:
+    return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_IMAGE_CHECKPOINT", str(IMAGE_CHECKPOINT)), name="zetta-vla-image",
+                          threads=_threads())

@@ -1,0 +1,196 @@
+"""Training of the Zetta VLA by flow matching on teacher demonstrations (`zetta train`).
+
+``zetta train`` = collect demonstrations (``data.py``, unless ``--data`` names existing ones)
++ this training loop + a checkpoint directory with the training config and the data recipe.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.policy_worker.vla.model import VLAConfig, ZettaVLA
+from services.policy_worker.vla.policy import save_checkpoint
+from services.policy_worker.vla.text import TextEncoder
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 20000
+    batch_size: int = 256
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    warmup: int = 500
+    #: Gaussian noise (in normalized units) added to the state inputs: cheap robustness to the
+    #: small state drift a learned policy sees that the teacher never did.
+    state_noise: float = 0.05
+    seed: int = 0
+    #: 1 by default: with env processes on the same cores, more intra-op threads spin and slow down.
+    threads: int = 1
+    time_budget_s: float = 0.0
+
+
+def load_demos(paths: list[str]) -> dict:
+    parts = [np.load(p, allow_pickle=False) for p in paths]
+    out = {k: np.concatenate([p[k] for p in parts]) for k in ("states", "actions", "episode_lengths", "instructions")}
+    if all("images" in p for p in parts):
+        out["images"] = np.concatenate([p["images"] for p in parts])
+    recipes = []
+    for p in paths:
+        meta = Path(p + ".json")
+        if meta.exists():
+            recipes.append(json.loads(meta.read_text()))
+    out["recipes"] = recipes
+    return out
+
+
+def chunk_targets(actions: np.ndarray, lengths: np.ndarray, chunk: int) -> np.ndarray:
+    """[N, chunk, 7]: the next ``chunk`` teacher actions, the episode's last one repeated at its end."""
+    out = np.empty((len(actions), chunk, actions.shape[1]), np.float32)
+    start = 0
+    for n in lengths:
+        ep = actions[start:start + n]
+        idx = np.minimum(np.arange(n)[:, None] + np.arange(chunk)[None], n - 1)
+        out[start:start + n] = ep[idx]
+        start += n
+    return out
+
+
+def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = None, cfg: TrainConfig | None = None,
+          log=print, text_cache: dict | None = None, init: str = "") -> dict:
+    cfg = cfg or TrainConfig()
+    model_cfg = model_cfg or VLAConfig()
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    demos = load_demos(demo_paths)
+    lengths = demos["episode_lengths"]
+    ep_instr = demos["instructions"]
+    step_instr = np.repeat(np.arange(len(lengths)), lengths)
+    texts = TextEncoder(text_cache)
+    uniq = sorted(set(ep_instr.tolist()))
+    emb = texts.encode(uniq)
+    index = {s: i for i, s in enumerate(uniq)}
+    text_idx = np.array([index[ep_instr[e]] for e in step_instr])
+    if model_cfg.image_size:
+        from services.policy_worker.vla.features import PROPRIO_DIM
+
+        states = demos["states"][:, :PROPRIO_DIM]
+        images = torch.from_numpy(demos["images"])
+    else:
+        states = demos["states"]
+        images = None
+    actions = demos["actions"]
+    targets = chunk_targets(actions, lengths, model_cfg.chunk)
+    model = ZettaVLA(model_cfg)
+    s_mean, s_std = states.mean(0), states.std(0)
+    if init:  # fine-tune (e.g. a DAgger round): weights and normalization from the checkpoint
+        from services.policy_worker.vla.policy import load_checkpoint
+
+        model, _, cache = load_checkpoint(init)
+        model.train()
+        texts = TextEncoder({**cache, **texts.cache})
+        s_mean, s_std = model.state_mean.numpy(), model.state_std.numpy()
+    s_std = np.where(s_std < 1e-4, 1.0, s_std)
+    a_mean, a_std = actions.mean(0), actions.std(0)
+    a_std = np.where(a_std < 1e-4, 1.0, a_std)
+    if init:
+        a_mean, a_std = model.action_mean.numpy().copy(), model.action_std.numpy().copy()
+        s_mean, s_std = s_mean.copy(), s_std.copy()
+    model.state_mean.copy_(torch.from_numpy(s_mean))
+    model.state_std.copy_(torch.from_numpy(s_std))
+    model.action_mean.copy_(torch.from_numpy(a_mean))
+    model.action_std.copy_(torch.from_numpy(a_std))
+    model.to(device).train()
+    S = torch.from_numpy(states).to(device)
+    A = torch.from_numpy((targets - a_mean) / a_std).float().to(device)
+    E = torch.from_numpy(emb).to(device)
+    TI = torch.from_numpy(text_idx).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: min(1.0, (s + 1) / cfg.warmup) * 0.5 * (1 + np.cos(np.pi * min(1.0, s / cfg.steps))))
+    n = len(S)
+    log(f"training on {len(lengths)} demos, {n} transitions, {len(uniq)} instructions, "
+        f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params, device {device}")
+    start = time.monotonic()
+    losses = []
+    step = 0
+    for step in range(cfg.steps):
+        idx = torch.randint(0, n, (cfg.batch_size,), device=device)
+        state = S[idx]
+        if cfg.state_noise:
+            state = state + cfg.state_noise * torch.randn_like(state) * model.state_std
+        img = images[idx.cpu()].to(device) if images is not None else None
+        loss = model.loss(state, E[TI[idx]], A[idx], img)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        losses.append(loss.item())
+        if (step + 1) % 500 == 0:
+            log(f"step {step + 1}/{cfg.steps} loss {np.mean(losses[-500:]):.4f} {time.monotonic() - start:.0f}s")
+        if cfg.time_budget_s and time.monotonic() - start > cfg.time_budget_s:
+            log(f"time budget reached at step {step + 1}")
+            break
+    seconds = time.monotonic() - start
+    model.cpu().eval()
+    meta = {
+        "training": {**asdict(cfg), "init": init, "steps_done": step + 1, "seconds": round(seconds, 1),
+                     "final_loss": float(np.mean(losses[-500:])), "device": str(device)},
+        "data": {"files": [str(p) for p in demo_paths], "demos": int(len(lengths)), "transitions": int(n),
+                 "instructions": uniq, "recipes": demos["recipes"]},
+    }
+    save_checkpoint(out_dir, model, meta, texts.cache)
+    log(f"saved {out_dir} ({sum(f.stat().st_size for f in Path(out_dir).iterdir()) / 1e6:.1f} MB) after {seconds:.0f}s")
+    return meta
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    from services.policy_worker.vla.data import PICK_PLACE_TASKS, DataRecipe, collect, default_teacher
+
+    p = argparse.ArgumentParser(prog="zetta train", description="collect demos and train the Zetta VLA")
+    p.add_argument("--variant", choices=("state", "image"), default="state")
+    p.add_argument("--data", nargs="*", default=[], help="existing demo .npz files (skip collection)")
+    p.add_argument("--out", default="", help="checkpoint directory (default out/checkpoints/zetta-vla-<variant>)")
+    p.add_argument("--teacher", default="")
+    p.add_argument("--seeds-per-task", type=int, default=40)
+    p.add_argument("--collect-budget", type=float, default=0.0, help="seconds of demo collection at most")
+    p.add_argument("--processes", type=int, default=2)
+    p.add_argument("--steps", type=int, default=TrainConfig.steps)
+    p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
+    p.add_argument("--time-budget", type=float, default=0.0, help="seconds of training at most")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--image-size", type=int, default=64)
+    p.add_argument("--init", default="", help="checkpoint to fine-tune from (DAgger rounds)")
+    p.add_argument("--lr", type=float, default=TrainConfig.lr)
+    a = p.parse_args(argv)
+    image_size = a.image_size if a.variant == "image" else 0
+    out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
+    data = list(a.data)
+    if not data:
+        teacher = a.teacher or default_teacher()
+        tasks = list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS)
+        recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
+                            image_size=image_size, time_budget_s=a.collect_budget)
+        path = f"out/demos/libero_goal_{a.variant}.npz"
+        print(json.dumps(collect(recipe, path), indent=2))
+        data = [path]
+    train(data, out, VLAConfig(image_size=image_size),
+          TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr),
+          init=a.init)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,206 @@
+"""The Zetta VLA: model contract, checkpoint, quantization plug-in, split serving, adapter.
+
+Fast: the shipped checkpoint's cached instruction embeddings keep the sentence model out of
+these tests; the closed-loop success checks are in tests/slow (``-m slow``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from services.policy_worker.models.base import FACTORIES  # noqa: E402
+from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig  # noqa: E402
+from services.policy_worker.vla.features import STATE_INPUTS  # noqa: E402
+from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy, load_checkpoint  # noqa: E402
+
+pytestmark = pytest.mark.skipif(not (STATE_CHECKPOINT / "model.pt").exists(), reason="no shipped checkpoint")
+
+
+def _batch(b: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {n: (rng.standard_normal((b, w)) * 0.1).astype(np.float32) for n, w in STATE_INPUTS}
+
+
+@pytest.fixture(scope="module")
+def policy() -> ZettaVLAPolicy:
+    return ZettaVLAPolicy()
+
+
+@pytest.fixture(scope="module")
+def instruction(policy) -> str:
+    return sorted(policy.text.cache)[0]
+
+
+def test_registered_and_checkpoint_is_small() -> None:
+    assert "zetta-vla-state" in FACTORIES
+    size = sum(f.stat().st_size for f in STATE_CHECKPOINT.iterdir())
+    assert size <= 25e6
+    _, doc, cache = load_checkpoint(STATE_CHECKPOINT)
+    assert doc["data"]["recipes"] and doc["training"]["steps_done"] > 0
+    assert all(v.shape == (384,) for v in cache.values())
+
+
+def test_inputs_are_not_goal_derived(policy) -> None:
+    names = {s.name for s in policy.input_specs()}
+    assert names == {n for n, _ in STATE_INPUTS}
+    assert not any(n.startswith("task_") for n in names)
+
+
+def test_infer_shapes_and_range(policy, instruction) -> None:
+    for b in (1, 5):
+        a = policy.infer(_batch(b), [instruction] * b)
+        assert a.shape == (b, policy.chunk_size, 7) and a.dtype == np.float32
+        assert np.all(np.abs(a) <= 1.0) and set(np.unique(a[..., 6])) <= {-1.0, 1.0}
+
+
+def test_batching_does_not_change_rows(policy, instruction) -> None:
+    batch = _batch(4)
+    together = policy.infer(batch, [instruction] * 4)
+    alone = np.concatenate([policy.infer({k: v[i:i + 1] for k, v in batch.items()}, [instruction]) for i in range(4)])
+    assert np.allclose(together[..., :6], alone[..., :6], atol=1e-4)
+
+
+def test_instruction_changes_the_action(policy) -> None:
+    instrs = sorted(policy.text.cache)
+    batch = _batch(1)
+    outs = [policy.infer(batch, [s]) for s in instrs[:3]]
+    assert any(not np.allclose(outs[0], o, atol=1e-3) for o in outs[1:])
+
+
+def test_w8a8_plugin_quantizes_only_prefix_mlp(instruction) -> None:
+    from torch.ao.nn.quantized.dynamic import Linear as DynLinear
+
+    q = ZettaVLAPolicy(quantize="w8a8")
+    assert q.quantized == ["encoder.prefix_mlp"]
+    assert sum(isinstance(m, DynLinear) for m in q.model.encoder.prefix_mlp.modules()) == 3
+    assert not any(type(m) is torch.nn.Linear for m in q.model.encoder.prefix_mlp.modules())
+    assert not any(isinstance(m, DynLinear) for m in q.model.expert.modules())
+    assert not any(isinstance(m, DynLinear) for m in q.model.encoder.obs.modules())
+    f = ZettaVLAPolicy()
+    batch = _batch(8)
+    diff = np.abs(q.infer(batch, [instruction] * 8)[..., :6] - f.infer(batch, [instruction] * 8)[..., :6])
+    assert diff.mean() < 0.1
+
+
+def test_split_matches_monolithic_and_honours_deadlines(instruction) -> None:
+    from services.policy_worker.vla.split import MonolithicVLA, SplitVLA
+
+    batch = _batch(6, seed=3)
+    items = [{k: v[i] for k, v in batch.items()} for i in range(6)]
+
+    async def go():
+        cfg = SchedulerConfig(max_batch=4, max_queue_delay=0.002)
+        mono, split = MonolithicVLA(config=cfg), SplitVLA(vlm=cfg, ae=cfg, slots=64)
+        try:
+            def mk(i, d=5.0):
+                return InferItem(f"t{i}", "m", items[i % 6], instruction, deadline=time.monotonic() + d)
+
+            a = await asyncio.gather(*(mono.submit(mk(i)) for i in range(6)))
+            b = await asyncio.gather(*(split.submit(mk(i)) for i in range(6)))
+            with pytest.raises(DeadlineExceededError):
+                await split.submit(mk(99, d=-1.0))
+            return a, b
+        finally:
+            await mono.drain()
+            await split.drain()
+
+    a, b = asyncio.run(go())
+    for x, y in zip(a, b, strict=True):
+        assert x.shape == (8, 7)
+        assert np.allclose(x[:, :6], y[:, :6], atol=1e-4)
+
+
+def test_adapter_contract_with_our_model(policy, instruction) -> None:
+    from services.policy_worker.vla.adapter import (
+        AdapterContractError, ExternalPolicyAdapter, ZettaVLAAdapter, check_actions, register_adapter)
+
+    adapter = ZettaVLAAdapter()
+    batch = _batch(3)
+    assert np.allclose(adapter.infer(batch, [instruction] * 3), policy.infer(batch, [instruction] * 3))
+    register_adapter("test-adapter", lambda: adapter)
+    try:
+        from services.policy_worker.models.base import load_model
+
+        assert load_model("test-adapter").name == "test-adapter"
+    finally:
+        FACTORIES.pop("test-adapter")
+    with pytest.raises(AdapterContractError):
+        check_actions(np.zeros((3, 8, 6), np.float32), 3, 8)
+    with pytest.raises(AdapterContractError):
+        check_actions(np.full((3, 8, 7), np.nan, np.float32), 3, 8)
+
+    class Bad(ExternalPolicyAdapter):
+        chunk_size = 2
+
+        def input_specs(self):
+            return []
+
+        def to_policy_inputs(self, batch, instructions):
+            return None
+
+        def forward(self, inputs):
+            return None
+
+        def to_actions(self, outputs, batch_size):
+            return np.zeros((batch_size, 2, 7))  # float64: violates the contract
+
+    with pytest.raises(AdapterContractError):
+        Bad().infer({}, ["x"])
+
+
+def test_training_smoke(tmp_path, policy) -> None:
+    from services.policy_worker.vla.model import VLAConfig
+    from services.policy_worker.vla.train import TrainConfig, chunk_targets, train
+
+    lengths = np.array([5, 3])
+    acts = np.arange(8 * 7, dtype=np.float32).reshape(8, 7)
+    t = chunk_targets(acts, lengths, 4)
+    assert np.array_equal(t[3], acts[[3, 4, 4, 4]]) and np.array_equal(t[5], acts[[5, 6, 7, 7]])
+    instr = sorted(policy.text.cache)[:2]
+    rng = np.random.default_rng(0)
+    path = str(tmp_path / "demos.npz")
+    np.savez(path, states=rng.standard_normal((8, 156)).astype(np.float32), actions=acts / 100,
+             episode_lengths=lengths, instructions=np.array(instr))
+    meta = train([path], str(tmp_path / "ck"), VLAConfig(prefix_hidden=64, width=32, expert_hidden=32),
+                 TrainConfig(steps=3, batch_size=4, warmup=1), log=lambda *_: None, text_cache=policy.text.cache)
+    assert meta["training"]["steps_done"] == 3
+    p2 = ZettaVLAPolicy(tmp_path / "ck")
+    assert p2.infer(_batch(2), [instr[0]] * 2).shape == (2, 8, 7)
+
+
+def test_wilson() -> None:
+    from services.policy_worker.vla.evaluate import wilson
+
+    lo, hi = wilson(8, 10)
+    assert 0.49 < lo < 0.5 and 0.94 < hi < 0.95
+
+
+@pytest.mark.gpu
+def test_split_over_cuda_ipc_and_image_variant(tmp_path) -> None:
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from services.policy_worker.vla.model import VLAConfig, ZettaVLA
+
+    m = ZettaVLA(VLAConfig(image_size=64)).cuda()
+    loss = m.loss(torch.randn(4, 16, device="cuda"), torch.randn(4, 384, device="cuda"),
+                  torch.randn(4, 8, 7, device="cuda"), torch.randint(0, 255, (4, 64, 64, 3), dtype=torch.uint8,
+                                                                      device="cuda"))
+    loss.backward()
+    from services.policy_worker.vla.split import SplitVLA
+
+    split = SplitVLA(device="cuda", slots=64)
+    try:
+        assert split.prefixes.is_cuda
+        b = _batch(1)
+        instr = sorted(split.policy.text.cache)[0]
+        out = asyncio.run(split.submit(InferItem("g", "m", {k: v[0] for k, v in b.items()}, instr,
+                                                 deadline=time.monotonic() + 10)))
+        assert out.shape == (8, 7)
+    finally:
+        split.close()
