@@ -115,7 +115,12 @@ def write_report(records: list[dict], out: Path, command: str, planned: int) -> 
     for suite, (k, n) in sorted(totals.items()):
         lo, hi = wilson(k, n)
         lines.append(f"| {suite} | {k}/{n} | {k / n:.1%} | {lo:.2f}-{hi:.2f} |")
-    out.write_text("\n".join(lines) + "\n")
+    notes = ""
+    if out.exists():  # a hand-written "## Notes" section at the end survives a rerun
+        previous = out.read_text()
+        if "\n## Notes" in previous:
+            notes = previous[previous.index("\n## Notes"):]
+    out.write_text("\n".join(lines) + "\n" + notes)
 
 
 def main(argv: list[str] | None = None) -> int:

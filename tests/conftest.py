@@ -21,8 +21,8 @@ from zetta.local_stack import LocalStack
 from zetta.v1 import gateway_pb2, types_pb2
 
 #: Short heartbeats so LOST detection is fast in tests (production default: 1000 / 3000 ms).
-HEARTBEAT_INTERVAL_MS = 200
-HEARTBEAT_TIMEOUT_MS = 1000
+HEARTBEAT_INTERVAL_MS = 250
+HEARTBEAT_TIMEOUT_MS = 2000
 
 #: The cheap environment most tests use (builds in about 3 s).
 LIFT: dict[str, Any] = {"env_name": "Lift"}

@@ -1,9 +1,8 @@
 """Episode videos through the gateway: a session asks, the env worker writes the MP4.
 
-The stack is private: its env worker runs with ZETTA_VIDEO_DIR and the production heartbeat
-timeout (3 s). Making a GL context uploads the scene's textures inside MuJoCo with the GIL held
-(about 1 s on a loaded 2-core CPU renderer), which the shared stack's 1 s test timeout does not
-always absorb. The files are on this machine, so the test opens them with OpenCV as a user of
+The stack is private: its env worker runs with ZETTA_VIDEO_DIR and a 10 s heartbeat timeout.
+Making a GL context uploads the scene's textures inside MuJoCo with the GIL held (about 1 s on a
+2-core CPU renderer, more under load), and this test is about videos, not heartbeats. The files are on this machine, so the test opens them with OpenCV as a user of
 the stack would. The worker side (frame counts, chunk-end rendering, errors) is covered without
 a stack in tests/unit/test_rendering.py.
 """
@@ -35,7 +34,7 @@ def video_stats(path: str) -> tuple[int, int, int]:
 async def test_run_episode_records_video(stack_factory, tmp_path: Path) -> None:
     """RunEpisode and Reset with record_video: one frame per executed action plus the reset's."""
     videos = tmp_path / "videos"
-    stack = stack_factory(env_workers=1, slots=2, heartbeat_timeout_ms=3000, families=["robosuite"],
+    stack = stack_factory(env_workers=1, slots=2, heartbeat_timeout_ms=10000, families=["robosuite"],
                           extra_env={"ZETTA_LOG_LEVEL": "INFO", "ZETTA_VIDEO_DIR": str(videos)})
     async with Gateway(stack.gateway_address) as gw:
         group = await gw.create_sessions("robosuite", n=2, env_config={**LIFT, "cameras": ["agentview"], "camera_size": 64})

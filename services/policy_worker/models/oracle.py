@@ -368,9 +368,11 @@ class OraclePolicy:
             action = self._pick._action(np.zeros(3), _OPEN)
             action[3:6] = self._orient(obs, DOWN)
             return action
-        if abs(direction[2]) < 0.3 and self._is_bar(obs):
-            return self._pull_bar(obs)
-        return self._finger_push(obs)
+        stage = obs["task_stage"]
+        knob = stage[STAGE_KINDS.index("turnon")] > 0 or stage[STAGE_KINDS.index("turnoff")] > 0
+        if not knob and abs(direction[2]) < 0.3 and self._is_bar(obs):
+            return self._pull_bar(obs)  # open/close: a drawer's bar
+        return self._finger_push(obs)  # turnon/turnoff: a knob's lever
 
     def _is_bar(self, obs: dict[str, np.ndarray]) -> bool:
         """A handle that moves along a straight line sideways: the handle goal lies on the motion line."""
