@@ -59,6 +59,7 @@ from services.env_worker.families.robosuite_lift import (  # noqa: E402
     GLOBAL_RNG_LOCK,
     PROPRIO_DIM,
     CompiledModels,
+    PooledGroup,
     build_env,
     clear_gripper_command,
     env_kwargs,
@@ -132,7 +133,7 @@ def _resolve_task(names: list[str], task: str) -> int:
 
 
 @register_family
-class LiberoFamily(EnvFamily):
+class LiberoFamily(PooledGroup, EnvFamily):
     """LIBERO suites; one instance shares compiled scenes and warm envs across its slots."""
 
     name = "libero"
@@ -206,20 +207,6 @@ class LiberoFamily(EnvFamily):
             slot.switch_task(self.task_index(""))
         return slot
 
-    def sharing_stats(self) -> dict[str, int]:
-        return {
-            "models_compiled": self._models.compiled,
-            "models_reused": self._models.reused,
-            "envs_built": self._pool.built,
-            "envs_reused": self._pool.reused,
-            "envs_idle": self._pool.idle_count(),
-            **self._models.stats(),
-        }
-
-    def close(self) -> None:
-        for env in self._pool.drain():
-            env.close()
-        self._models.clear()
 
     # -- used by slots ----------------------------------------------------------------------
 

@@ -267,8 +267,32 @@ _TASK_OBJECTS: dict[str, tuple[str, str | None]] = {"Lift": ("cube", None), "Sta
 _LIFT_TARGET_HEIGHT = 0.1
 
 
+class PooledGroup:
+    """Counters and teardown shared by families that keep compiled models and a pool of envs."""
+
+    _models: CompiledModels
+    _pool: EnvPool[Any]
+
+    def sharing_stats(self) -> dict[str, int]:
+        """How much the group reused (the resource-sharing tests assert on these)."""
+        return {
+            "models_compiled": self._models.compiled,
+            "models_reused": self._models.reused,
+            "envs_built": self._pool.built,
+            "envs_reused": self._pool.reused,
+            "envs_idle": self._pool.idle_count(),
+            **self._models.stats(),
+        }
+
+    def close(self) -> None:
+        """Close every pooled env and drop the compiled models."""
+        for env in self._pool.drain():
+            env.close()
+        self._models.clear()
+
+
 @register_family
-class RobosuiteFamily(EnvFamily):
+class RobosuiteFamily(PooledGroup, EnvFamily):
     """Single-arm robosuite tasks with privileged object state.
 
     robosuite has no fixed initial states: the placement is drawn from (seed, init_state_index),
@@ -337,20 +361,6 @@ class RobosuiteFamily(EnvFamily):
         """Keep a closed slot's environment warm for the next slot."""
         self._pool.release(self.config["env_name"], env)
 
-    def sharing_stats(self) -> dict[str, int]:
-        return {
-            "models_compiled": self._models.compiled,
-            "models_reused": self._models.reused,
-            "envs_built": self._pool.built,
-            "envs_reused": self._pool.reused,
-            "envs_idle": self._pool.idle_count(),
-            **self._models.stats(),
-        }
-
-    def close(self) -> None:
-        for env in self._pool.drain():
-            env.close()
-        self._models.clear()
 
     def _build(self) -> Any:
         cfg = self.config
