@@ -14,7 +14,8 @@ pytestmark = pytest.mark.slow
 
 
 def test_zetta_train_reproduces_shipped_success(tmp_path, monkeypatch) -> None:
-    from services.policy_worker.vla.evaluate import evaluate, wilson
+    from services.policy_worker.vla.evaluate import evaluate
+    from zetta.stats import wilson
     from services.policy_worker.vla.policy import STATE_CHECKPOINT
     from zetta.cli import main
 

@@ -174,13 +174,6 @@ def test_training_smoke(tmp_path, policy) -> None:
     assert p2.infer(_batch(2), [instr[0]] * 2).shape == (2, 8, 7)
 
 
-def test_wilson() -> None:
-    from services.policy_worker.vla.evaluate import wilson
-
-    lo, hi = wilson(8, 10)
-    assert 0.49 < lo < 0.5 and 0.94 < hi < 0.95
-
-
 @pytest.mark.gpu
 def test_split_over_cuda_ipc_and_image_variant(tmp_path) -> None:
     if not torch.cuda.is_available():

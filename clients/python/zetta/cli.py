@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import math
 import signal
 import sys
 import time
@@ -24,6 +23,7 @@ from dataclasses import dataclass
 
 from zetta.client import Gateway, SessionGroup
 from zetta.hops import histograms, scrape
+from zetta.stats import wilson
 from zetta.v1 import types_pb2
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
@@ -109,17 +109,6 @@ def print_hops(metrics_urls: Sequence[str]) -> None:
         if h.name.endswith(("OpenSlots", "CreateSessions", "ListWorkers", "ListSessions", "CloseSlots", "CloseSessions")):
             continue
         print(f"  {h.name:<40} {h.count:>8} {h.mean_ms:>9.2f} {h.p50_ms:>9.2f} {h.p99_ms:>9.2f}")
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson 95% interval of a success rate."""
-    if n == 0:
-        return (0.0, 0.0)
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
@@ -218,7 +207,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         import importlib
 
         return int(importlib.import_module(_FORWARDED[argv[0]]).main(argv[1:]))
-    parser = argparse.ArgumentParser(prog="zetta", description="Zetta rollout infrastructure")
+    parser = argparse.ArgumentParser(
+        prog="zetta",
+        description="Zetta rollout infrastructure",
+        epilog="also: " + ", ".join(f"zetta {name}" for name in _FORWARDED) + " (each has its own --help)",
+    )
     sub = parser.add_subparsers(dest="cmd", required=True)
     up = sub.add_parser("up", help="run the whole stack on this machine")
     up.add_argument("--demo", action="store_true", help="run the demo episodes, print a summary and stop")

@@ -10,21 +10,14 @@ intervals.
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import os
 import time
 from pathlib import Path
 
+from zetta.stats import wilson
 
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return (0.0, 0.0)
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
+
 
 
 def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results) -> None:
