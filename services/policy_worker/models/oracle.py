@@ -386,13 +386,7 @@ class OraclePolicy:
         """Push the handle along its motion direction with the trailing finger of the open gripper."""
         p = self.params
         eef = obs["robot0_eef_pos"]
-        handle = obs["task_object_bbox"]
-        d = obs["task_motion_dir"].copy()
-        d[2] = 0.0
-        d /= max(float(np.linalg.norm(d)), 1e-9)
-        center = (handle[:3] + handle[3:]) / 2
-        half = (handle[3:] - handle[:3]) / 2
-        extent = abs(d[0]) * half[0] + abs(d[1]) * half[1]
+        handle, d, center, extent = _handle_frame(obs)
         # Finger on the -d side of the handle; the grip site sits finger_offset further along y.
         finger = center - d * (extent + p.finger_half + p.handle_gap)
         side = np.sign(d[1]) if abs(d[1]) > 1e-6 else 1.0
@@ -424,13 +418,7 @@ class OraclePolicy:
         """Face the bar (fingers horizontal, closing vertically), grasp it and move it along the axis."""
         p = self.params
         eef = obs["robot0_eef_pos"]
-        handle = obs["task_object_bbox"]
-        d = obs["task_motion_dir"].copy()
-        d[2] = 0.0
-        d /= max(float(np.linalg.norm(d)), 1e-9)
-        center = (handle[:3] + handle[3:]) / 2
-        half = (handle[3:] - handle[:3]) / 2
-        extent = abs(d[0]) * half[0] + abs(d[1]) * half[1]
+        handle, d, center, extent = _handle_frame(obs)
         # The handle protrudes toward the side it is pulled from; face it from there.
         out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
         approach = -out  # hand z axis (palm to fingertips) points at the cabinet
@@ -462,3 +450,15 @@ class OraclePolicy:
             action = self._move(eef, grasp, self._aperture(gap, p.bar_open_gap), p.handle_max_action)
         action[3:6] = self._orient(obs, desired)
         return action
+
+
+def _handle_frame(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The handle's box, its horizontal motion direction, its centre and its half-extent along it."""
+    handle = obs["task_object_bbox"]
+    d = obs["task_motion_dir"].copy()
+    d[2] = 0.0
+    d /= max(float(np.linalg.norm(d)), 1e-9)
+    center = (handle[:3] + handle[3:]) / 2
+    half = (handle[3:] - handle[:3]) / 2
+    extent = float(abs(d[0]) * half[0] + abs(d[1]) * half[1])
+    return handle, d, center, extent
