@@ -1,0 +1,49 @@
+"""The contract between harness code (critics, recoveries, tools) and the runtime that runs it.
+
+Harness packages are written by people, by the evolver's template search and by LLMs; this module
+is the one thing their code may import from Zetta besides the predicate library, so it stays small
+and stable. A critic reads a :class:`Window` of the recent trajectory and may return a
+:class:`Proposal`; it never acts. The orchestrator decides.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One env step as critics see it: s_t (named observation tensors, privileged ones included),
+    a_t (the action that led here, None at reset), mu_t (milestones reached so far) and the step."""
+
+    step: int
+    obs: Mapping[str, np.ndarray]
+    action: np.ndarray | None
+    milestones: frozenset[str]
+
+
+@dataclass(frozen=True)
+class Window:
+    """The last frames of an episode, oldest first, plus the task knowledge critics may use."""
+
+    frames: Sequence[Frame]
+    instruction: str
+    milestone_names: Sequence[str]
+
+    @property
+    def now(self) -> Frame:
+        return self.frames[-1]
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """What a critic saw (``evidence``: a kind such as ``grasp_lost`` plus numbers that justify
+    it) and the mode it suggests; the orchestrator may ignore it."""
+
+    critic: str
+    evidence: str
+    suggested_mode: str
+    details: Mapping[str, float] = field(default_factory=dict)
