@@ -4,7 +4,7 @@
 2. split (VLM and action expert in two processes, prefix through shared memory) vs monolithic
    (one process, one scheduler): latency and goodput under a 200 ms SLO at several open-loop
    Poisson loads (requests/s); goodput = answers within the SLO per second;
-3. the scheduler's max_queue_delay at the highest load (how the default was chosen).
+3. the scheduler's max_queue_delay and max_batch at the highest load (how the defaults were chosen).
 
     python bench/bench_policy.py [--duration 3] [--loads 50,200,400,800] [--checkpoint DIR]
 """
@@ -100,6 +100,12 @@ async def serving(args, instruction: str) -> None:
                                                                             max_queue_delay=delay))
                 sweep[delay] = await open_loop(s2, instruction, loads[-1], args.duration)
                 await s2.drain()
+            batch_sweep = {}
+            for mb in (1, 4, 8, 16, 32, 64):
+                s2 = MonolithicVLA(args.checkpoint, config=SchedulerConfig(
+                    max_batch=mb, max_queue_delay=args.delay_ms / 1000, max_queue=max(1024, mb)))
+                batch_sweep[mb] = await open_loop(s2, instruction, loads[-1], args.duration)
+                await s2.drain()
         await server.drain()
         server.close()
     print(f"\n== split vs monolithic, open-loop Poisson load, SLO {SLO * 1000:.0f} ms "
@@ -114,6 +120,10 @@ async def serving(args, instruction: str) -> None:
     print(f"{'delay ms':>8} {'mean ms':>8} {'p99 ms':>8} {'goodput/s':>10}")
     for d, r in sweep.items():
         print(f"{d * 1000:>8.1f} {r['mean_ms']:>8.1f} {r['p99_ms']:>8.1f} {r['goodput']:>10.1f}")
+    print(f"\n== monolithic max_batch sweep at {loads[-1]:.0f} req/s (max_queue_delay {args.delay_ms} ms) ==")
+    print(f"{'max_batch':>9} {'mean ms':>8} {'p99 ms':>8} {'goodput/s':>10} {'missed':>7}")
+    for mb, r in batch_sweep.items():
+        print(f"{mb:>9} {r['mean_ms']:>8.1f} {r['p99_ms']:>8.1f} {r['goodput']:>10.1f} {r['rejected']:>7}")
 
 
 def main() -> None:

@@ -16,6 +16,9 @@ create     Slot create and reset against a fresh environment build: a cold proce
            longest stall a 1 ms ticker thread saw during each; a new env on the group's shared
            template; a slot from the group's pool; resets with a held seed, a new seed (private
            model rewritten in place), a seed another slot holds (model shared).
+resetphases Where one LIBERO-Goal slot reset (same key every time, fast path) spends its time:
+           robosuite's env.reset(), the settle steps, the rest (init state, task state,
+           observation); medians per phase and their shares. Not in the default run.
 parallel   Aggregate steps/s of N LIBERO-Goal slots stepping at once on this machine: one thread
            stepping them in turn, N threads in one process (the env worker's model: one slot
            thread per slot, one shared model), N processes with one slot each -- for the fast
@@ -24,6 +27,7 @@ parallel   Aggregate steps/s of N LIBERO-Goal slots stepping at once on this mac
     python bench/bench_sim.py              # about 4 minutes on 2 cores
     python bench/bench_sim.py --quick      # about 2 minutes
     python bench/bench_sim.py --only steps,create
+    python bench/bench_sim.py --only resetphases
 Rendering cost is measured by bench/bench_render.py.
 """
 
@@ -69,6 +73,60 @@ def _family(name: str, config: dict[str, Any]) -> Any:
     from services.env_worker.families.base import get_family
 
     return get_family(name)(config)
+
+
+# ---------------------------------------------------------------------------------------------
+# reset phases
+
+
+def bench_reset_phases(repeats: int) -> dict[str, float]:
+    """Median ms per phase of a LIBERO slot reset: each phase is timed by wrapping the call."""
+    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.fast_step import make_stepper
+
+    family = _family("libero", LIBERO)
+    slot = family.init()
+    spec = ResetSpec(TASK, seed=0, init_state_index=0)
+    slot.reset(spec)
+    env = slot._env
+    stepper = make_stepper(env, True)
+    spent: dict[str, float] = defaultdict(float)
+
+    def timed(owner: Any, attr: str, phase: str) -> None:
+        inner = getattr(owner, attr)
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            start = time.perf_counter()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                spent[phase] += time.perf_counter() - start
+
+        setattr(owner, attr, wrapper)
+
+    timed(env, "reset", "env.reset")
+    timed(stepper, "step", "settle steps")
+    rows: dict[str, list[float]] = defaultdict(list)
+    try:
+        for _ in range(max(repeats, 5) * 2):
+            spent.clear()
+            total = _timed(lambda: slot.reset(spec))[0] * 1000
+            rows["total"].append(total)
+            for phase in ("env.reset", "settle steps"):
+                rows[phase].append(spent[phase] * 1000)
+            rows["rest"].append(total - 1000 * (spent["env.reset"] + spent["settle steps"]))
+    finally:
+        del env.reset, stepper.step  # the instance attributes set above
+        slot.close()
+        family.close()
+    return {phase: _median(v) for phase, v in rows.items()}
+
+
+def print_reset_phases(res: dict[str, float]) -> None:
+    print(f"\n== reset phases: one LIBERO-Goal slot, same key, fast path (median ms; load average "
+          f"{os.getloadavg()[0]:.1f})")
+    for phase in ("env.reset", "settle steps", "rest", "total"):
+        print(f"{phase:14} {res[phase]:8.1f} ms {100 * res[phase] / res['total']:5.0f}%")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -535,6 +593,9 @@ def main() -> None:
     if "create" in sections:
         results["create"] = bench_create(repeats)
         print_create(results["create"])
+    if "resetphases" in sections:
+        results["resetphases"] = bench_reset_phases(repeats)
+        print_reset_phases(results["resetphases"])
     if "parallel" in sections:
         counts = [2] if args.quick else [2, 4]
         results["parallel"] = bench_parallel(counts, 3 if args.quick else 6, 40 if args.quick else 60, 15)

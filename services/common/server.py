@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import sys
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -120,6 +121,7 @@ def run_service(main: Callable[[], Awaitable[None]], service: str) -> None:
     try:
         asyncio.run(main())
     except ConfigError as exc:
-        raise SystemExit(f"{exc}") from None
+        print(f"{service}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     except KeyboardInterrupt:
         pass

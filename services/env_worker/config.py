@@ -27,6 +27,12 @@ class EnvWorkerConfig:
     #: Directory for episode videos (ZETTA_VIDEO_DIR), created and proven writable at start-up;
     #: empty: sessions cannot ask for videos.
     video_dir: str = ""
+    #: One resource-sharing group per (family, config) (ZETTA_RESOURCE_SHARING, default on); off,
+    #: every session compiles its own scene: the baseline `zetta bench rollout` compares against.
+    resource_sharing: bool = True
+    #: The critic service (ZETTA_CRITIC_ADDR, host:port) that resets naming a harness by registry
+    #: reference load it from; empty: only harness_dir packages can run.
+    critic_address: str = ""
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -54,6 +60,8 @@ class EnvWorkerConfig:
             default_policy_timeout_ms=env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1),
             grace_seconds=env.float("ZETTA_GRACE_SECONDS", 10.0, minimum=0.0),
             video_dir=_video_dir(env),
+            resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
+            critic_address=env.address("ZETTA_CRITIC_ADDR"),
         )
         env.finish("env worker")
         return cfg

@@ -54,7 +54,8 @@ async def main() -> None:
         threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms)
-    servicer = EnvWorkerServicer(table, policy, video_dir=cfg.video_dir)
+    servicer = EnvWorkerServicer(table, policy, video_dir=cfg.video_dir, resource_sharing=cfg.resource_sharing,
+                                 critic_address=cfg.critic_address)
     membership: Membership | None = None
 
     async def drain() -> None:

@@ -19,3 +19,7 @@ RESET_SECONDS = Histogram(
 )
 SLOTS = Gauge("zetta_env_slots", "Slots of this worker by state.", ["state"])
 POLICY_ERRORS = Counter("zetta_env_policy_errors_total", "Failed inference requests, by status code.", ["code"])
+FRAMES = Counter(
+    "zetta_env_frames_rendered_total",
+    "Camera frames rendered (one per camera per rendered state: observations and video frames).", ["camera"],
+)

@@ -6,7 +6,9 @@ GL backend
     worker start, where the choice and its reason are logged). In order:
 
     1. ``MUJOCO_GL`` set by the operator: kept as is (``PYOPENGL_PLATFORM`` follows it).
-    2. An NVIDIA GPU (``/dev/nvidia<N>``) and NVIDIA's EGL library (``libEGL_nvidia``): ``egl``,
+    2. An NVIDIA GPU (``/dev/nvidia<N>``), ``libEGL`` and NVIDIA's EGL driver (``libEGL_nvidia``
+       in the linker cache, or its glvnd vendor file ``/usr/share/glvnd/egl_vendor.d/*nvidia*.json``,
+       which the NVIDIA container toolkit mounts with the ``graphics`` capability): ``egl``,
        rendering on the GPU (``MUJOCO_EGL_DEVICE_ID`` picks the device; the first one otherwise).
     3. ``libOSMesa`` installed (Debian ``libosmesa6``): ``osmesa``, Mesa's software renderer.
     4. ``libEGL`` installed (``libegl1`` + ``libegl-mesa0``): ``egl`` through Mesa's software
@@ -55,6 +57,8 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker.metrics import FRAMES
+
 log = logging.getLogger(__name__)
 
 #: Camera a video shows when the session's config renders no camera.
@@ -84,10 +88,20 @@ def nvidia_gpu_present() -> bool:
     return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/proc/driver/nvidia/gpus/*"))
 
 
+#: Where glvnd looks for EGL vendor libraries; NVIDIA's entry names ``libEGL_nvidia.so.0``.
+EGL_VENDOR_GLOB = "/usr/share/glvnd/egl_vendor.d/*nvidia*.json"
+
+
+def nvidia_egl_vendor_files() -> list[str]:
+    """glvnd's NVIDIA EGL vendor files: the driver is installed even when ldconfig's cache misses it."""
+    return glob.glob(EGL_VENDOR_GLOB)
+
+
 def choose_gl_backend(
     environ: Mapping[str, str],
     find_library: Callable[[str], str | None] = ctypes.util.find_library,
     nvidia: bool | None = None,
+    egl_vendors: Callable[[], list[str]] = nvidia_egl_vendor_files,
 ) -> GLChoice:
     """The backend the rules in the module docstring give, without changing anything."""
     preset = environ.get("MUJOCO_GL", "").strip().lower()
@@ -97,7 +111,7 @@ def choose_gl_backend(
     egl, osmesa = find_library("EGL"), find_library("OSMesa")
     note = ""
     if gpu:
-        if egl and find_library("EGL_nvidia"):
+        if egl and (find_library("EGL_nvidia") or egl_vendors()):
             return GLChoice("egl", "NVIDIA GPU: EGL on the device")
         note = "NVIDIA GPU without libEGL_nvidia (driver capability 'graphics' missing?); "
     if osmesa:
@@ -254,6 +268,7 @@ class SceneRenderer:
                 rgb = np.empty((height, width, 3), dtype=np.uint8)
                 mujoco.mjr_readPixels(rgb, None, rect, self._con)
                 frames.append(np.ascontiguousarray(rgb[::-1]))  # OpenGL's origin is bottom-left
+                FRAMES.labels(self.model.camera(cid).name).inc()
         self.frames += len(frames)
         return frames
 

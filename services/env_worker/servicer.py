@@ -22,7 +22,7 @@ from services.common.grpc_errors import ServiceError, error_boundary
 from services.common.metrics import HOP_LATENCY
 from services.common.spec_codec import spec_to_wire
 from zetta.codec import TensorDecodeError, decode, encode, encode_observation
-from services.env_worker import metrics
+from services.env_worker import harness_loop, metrics
 from services.env_worker.families.base import ResetError, ResetSpec, Slot
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
@@ -57,8 +57,14 @@ def _milestone_report(env: Slot) -> tuple[list[str], list[str], str]:
 class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
     """The slots of one worker process."""
 
-    def __init__(self, table: SlotTable, policy: PolicyClient, worker_id: str = "", video_dir: str = "") -> None:
+    def __init__(self, table: SlotTable, policy: PolicyClient, worker_id: str = "", video_dir: str = "",
+                 resource_sharing: bool = True, critic_address: str = "") -> None:
         self.table = table
+        #: Where resets that name a harness get its package (ZETTA_CRITIC_ADDR for registry references).
+        self.harness_source = harness_loop.HarnessSource(critic_address)
+        #: False (ZETTA_RESOURCE_SHARING=false): each session gets a group of its own, compiling its
+        #: own scene; a baseline for the throughput bench, never faster.
+        self.resource_sharing = resource_sharing
         self.policy = policy
         self.worker_id = worker_id
         #: Where episode videos go (ZETTA_VIDEO_DIR, checked at start-up); empty: no videos.
@@ -74,6 +80,10 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         config = json_format.MessageToDict(request.env_config)
         family = self.table.group(request.env_family, config)
         slots = self.table.bind(list(request.session_ids), request.env_family, family)
+        if not self.resource_sharing:
+            for s in slots:
+                if s.env is None and s.family is family:
+                    s.family = type(family)(family.config)
         try:
             await asyncio.gather(*(s.run(self._build, s) for s in slots if s.env is None))
         except ServiceError:
@@ -117,6 +127,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         if slot.env is not None:
             env = slot.env
             slot.executor.submit(env.close)
+        if not self.resource_sharing:
+            slot.executor.submit(slot.family.close)  # the session's own group: its scene goes too
         return True
 
     def close_all(self, keep: Sequence[str] = ()) -> list[str]:
@@ -148,6 +160,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
                     [slot.session_id],
                 )
             video_path = os.path.join(self.video_dir, f"{episode_id}.mp4")
+        package = self.harness_source.load(spec, slot.session_id)
+        harness = harness_loop.bind(slot.harness, package)  # a package that makes no harness fails here
         if slot.env is None:
             slot.env = slot.family.init()
         try:
@@ -176,6 +190,10 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             video_path=video_path,
             milestone_names=slot.env.milestone_names(),
         )
+        slot.harness = harness
+        if harness is not None:
+            harness.reset(obs, episode.instruction, result.milestone_names)
+            result.harness_content_hash = harness.package.content_hash
         encode_observation(obs, result.observation)
         return result
 
@@ -223,15 +241,20 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         executed = 0
         outcome = None
         last = len(chunk) - 1
-        for i, action in enumerate(chunk):
-            start = time.perf_counter()
-            # Camera images only for the observation this call returns: after the chunk's last action.
-            outcome = env.step(action, render=i == last)
-            step_hist.observe(time.perf_counter() - start)
-            reward += outcome.reward
-            executed += 1
-            if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
-                break
+        by_recovery = 0
+        if slot.harness is not None:  # critics at every step; a recovery's actions replace the policy's
+            outcome, chunk, reward, by_recovery = slot.harness.run_chunk(env, chunk, episode.max_steps, step_hist)
+            executed = len(chunk)
+        else:
+            for i, action in enumerate(chunk):
+                start = time.perf_counter()
+                # Camera images only for the observation this call returns: after the chunk's last action.
+                outcome = env.step(action, render=i == last)
+                step_hist.observe(time.perf_counter() - start)
+                reward += outcome.reward
+                executed += 1
+                if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
+                    break
         assert outcome is not None
         if executed - 1 != last:  # the episode ended inside the chunk: render its final observation
             outcome.observation = env.observe()
@@ -256,6 +279,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         )
         encode(chunk[:executed], result.executed_actions)
         encode_observation(outcome.observation, result.observation)
+        if slot.harness is not None:
+            slot.harness.annotate(result, by_recovery, episode.ended, episode.success)
         return result
 
     # ---- policy ------------------------------------------------------------------------------
@@ -270,9 +295,19 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         actions = decode(out.actions)
         return action_spec_check(slot.family.action_spec(), actions, slot.session_id), out.model
 
+    async def _next_chunk(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> tuple[np.ndarray, bool]:
+        """The policy's chunk, or (while a harness recovery has control) a placeholder the recovery's
+        actions replace, without asking the policy; and whether the policy was asked."""
+        if slot.harness is not None and slot.harness.in_recovery:
+            spec = slot.family.action_spec()
+            n = policy.execute_steps if policy.execute_steps > 0 else harness_loop.RECOVERY_CHUNK
+            return harness_loop.placeholder_chunk(n, int(spec.shape[0]), np.dtype(spec.dtype)), False
+        chunk, _ = await self._infer(slot, policy)
+        return chunk, True
+
     async def _policy_step(self, slot: BoundSlot, policy: types_pb2.PolicySpec) -> types_pb2.StepResult:
         async with slot.busy:
-            chunk, _ = await self._infer(slot, policy)
+            chunk, _ = await self._next_chunk(slot, policy)
             if policy.execute_steps > 0:
                 chunk = chunk[: policy.execute_steps]
             return await slot.run(self._execute, slot, chunk)
@@ -336,8 +371,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         last: types_pb2.StepResult | None = None
         async with slot.busy:
             while slot.env.episode_step - first_step < budget and not episode.ended:
-                chunk, _ = await self._infer(slot, policy)
-                calls += 1
+                chunk, asked = await self._next_chunk(slot, policy)
+                calls += asked
                 remaining = budget - (slot.env.episode_step - first_step)
                 n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)
                 last = await slot.run(self._execute, slot, chunk[: min(n, remaining)])
@@ -345,6 +380,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             # The summary's video is complete: one that the budget cut short is finished here.
             video_path = await slot.run(slot.env.finish_video)
             names, reached, missing = await slot.run(_milestone_report, slot.env)
+            harness = slot.harness.report() if slot.harness is not None else None
         if last is not None and last.success:
             reason = types_pb2.STOP_REASON_SUCCESS
         elif last is not None and last.terminated:
@@ -364,6 +400,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             milestone_names=names,
             milestones_reached=reached,
             first_missing_milestone=missing,
+            harness_report=harness,
         )
 
     async def wait_idle(self) -> None:

@@ -56,6 +56,8 @@ class BoundSlot:
     episode: Episode | None = None
     last_obs: Mapping[str, np.ndarray] | None = None
     busy: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: The harness over this slot's episodes (services/env_worker/harness_loop.SlotHarness); None: none.
+    harness: Any = None
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn`` on this slot's pinned thread."""

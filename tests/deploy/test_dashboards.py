@@ -188,7 +188,7 @@ def test_rule_label_matchers_use_job_names_of_the_scrape_configs() -> None:
     """Rules select ``job=~"zetta-.*"``; every Zetta job of the scrape configurations matches it."""
     config = yaml.safe_load((PROMETHEUS / "prometheus.yml").read_text())
     jobs = {j["job_name"] for j in config["scrape_configs"]} - {"prometheus"}
-    assert jobs == {"zetta-gateway", "zetta-env-worker", "zetta-policy-worker"}
+    assert jobs == {"zetta-gateway", "zetta-env-worker", "zetta-policy-worker", "zetta-critic"}
 
 
 # ---- against the running services ----------------------------------------------------------------

@@ -418,10 +418,10 @@ def _run_service(module: str, env: dict[str, str]) -> subprocess.CompletedProces
     ids=["gateway-no-redis-url", "gateway-timeout-below-interval", "gateway-redis-unreachable",
          "env-worker-unknown-family", "policy-worker-unknown-model"],
 )
-def test_bad_configuration_exits_nonzero_naming_variable(module: str, env: dict[str, str], variable: str) -> None:
+def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, str], variable: str) -> None:
     """A misconfigured service stops at once with a message naming the variable, not a traceback."""
     proc = _run_service(module, env)
-    assert proc.returncode != 0
+    assert proc.returncode == 2, proc.stderr
     assert variable in proc.stderr
     assert "Traceback" not in proc.stderr
     if "nope" in env.values():

@@ -17,6 +17,7 @@ import cv2
 import grpc
 import numpy as np
 import pytest
+from prometheus_client import REGISTRY
 
 from services.common.config import ConfigError
 from services.env_worker.config import EnvWorkerConfig
@@ -54,19 +55,25 @@ def _libs(*present: str):
     return lambda name: f"lib{name}.so" if name in present else None
 
 
+_VENDOR = "/usr/share/glvnd/egl_vendor.d/10_nvidia.json"
+
+
 @pytest.mark.parametrize(
-    ("environ", "libs", "gpu", "backend"),
+    ("environ", "libs", "vendors", "gpu", "backend"),
     [
-        ({"MUJOCO_GL": "glfw"}, ("EGL", "OSMesa"), False, "glfw"),  # the operator's choice wins
-        ({}, ("EGL", "EGL_nvidia", "OSMesa"), True, "egl"),  # GPU: EGL on the device
-        ({}, ("EGL", "OSMesa"), True, "osmesa"),  # GPU but no NVIDIA EGL: software
-        ({}, ("EGL", "OSMesa"), False, "osmesa"),  # CPU: OSMesa when installed
-        ({}, ("EGL",), False, "egl"),  # CPU without OSMesa: EGL through Mesa
-        ({}, (), False, ""),  # nothing: state-only
+        ({"MUJOCO_GL": "glfw"}, ("EGL", "OSMesa"), [], False, "glfw"),  # the operator's choice wins
+        ({}, ("EGL", "EGL_nvidia", "OSMesa"), [], True, "egl"),  # GPU: EGL on the device
+        ({}, ("EGL", "OSMesa"), [_VENDOR], True, "egl"),  # GPU, driver known to glvnd only
+        ({}, ("OSMesa",), [_VENDOR], True, "osmesa"),  # GPU driver but no libEGL to load it
+        ({}, ("EGL", "OSMesa"), [], True, "osmesa"),  # GPU but no NVIDIA EGL: software
+        ({}, ("EGL", "EGL_nvidia", "OSMesa"), [_VENDOR], False, "osmesa"),  # no GPU: the driver alone is not enough
+        ({}, ("EGL", "OSMesa"), [], False, "osmesa"),  # CPU: OSMesa when installed
+        ({}, ("EGL",), [], False, "egl"),  # CPU without OSMesa: EGL through Mesa
+        ({}, (), [], False, ""),  # nothing: state-only
     ],
 )
-def test_gl_backend_rules(environ: dict, libs: tuple, gpu: bool, backend: str) -> None:
-    choice = choose_gl_backend(environ, _libs(*libs), nvidia=gpu)
+def test_gl_backend_rules(environ: dict, libs: tuple, vendors: list, gpu: bool, backend: str) -> None:
+    choice = choose_gl_backend(environ, _libs(*libs), nvidia=gpu, egl_vendors=lambda: vendors)
     assert choice.backend == backend
     assert choice.reason and (backend or "state-only") in choice.describe() + choice.reason
 
@@ -143,6 +150,25 @@ def test_images_rendered_only_when_an_observation_needs_them(slot) -> None:
     assert renderer.frames_rendered == 6 and set(IMAGES) <= set(observed)
     assert np.array_equal(slot.observe()["agentview_image"], observed["agentview_image"])
     assert renderer.frames_rendered == 6
+
+
+def _frames_metric(camera: str) -> float:
+    return REGISTRY.get_sample_value("zetta_env_frames_rendered_total", {"camera": camera}) or 0.0
+
+
+@NO_GL
+def test_frames_rendered_metric_counts_each_camera_render(slot) -> None:
+    """The Prometheus counter moves exactly when a frame is rendered, per camera, and not on
+    steps whose observations carry no images."""
+    before = {c: _frames_metric(c) for c in CAMERAS}
+    slot.reset(ResetSpec(""))
+    slot.step(UP, render=False)
+    slot.step(UP, render=False)
+    assert {c: _frames_metric(c) - before[c] for c in CAMERAS} == {c: 1.0 for c in CAMERAS}
+    slot.step(UP)
+    slot.observe()  # cached: no new frame
+    assert {c: _frames_metric(c) - before[c] for c in CAMERAS} == {c: 2.0 for c in CAMERAS}
+    assert slot.renderer.frames_rendered == 4
 
 
 @NO_GL

@@ -56,7 +56,7 @@ def test_infer_shapes_and_range(policy, instruction) -> None:
     for b in (1, 5):
         a = policy.infer(_batch(b), [instruction] * b)
         assert a.shape == (b, policy.chunk_size, 7) and a.dtype == np.float32
-        assert np.all(np.abs(a) <= 1.0) and set(np.unique(a[..., 6])) <= {-1.0, 1.0}
+        assert np.all(np.abs(a) <= 1.0) and set(np.unique(a[..., 6])) <= {-1.0, 0.0, 1.0}
 
 
 def test_batching_does_not_change_rows(policy, instruction) -> None:
@@ -172,6 +172,44 @@ def test_training_smoke(tmp_path, policy) -> None:
     assert meta["training"]["steps_done"] == 3
     p2 = ZettaVLAPolicy(tmp_path / "ck")
     assert p2.infer(_batch(2), [instr[0]] * 2).shape == (2, 8, 7)
+
+
+def test_gripper_snaps_to_the_three_commands_the_gripper_knows() -> None:
+    from services.policy_worker.vla.model import VLAConfig, ZettaVLA
+
+    class Fixed(torch.nn.Module):
+        def forward(self, prefix, noise=None):
+            g = torch.tensor([-0.9, -0.3, -0.1, 0.2, 0.6])
+            return torch.cat([torch.full((5, 6), 3.0), g[:, None]], dim=1)[:, None, :]
+
+    m = ZettaVLA(VLAConfig(width=8, prefix_hidden=8, expert_hidden=8, chunk=1))
+    m.expert = Fixed()
+    a = m.act(torch.zeros(5, 4, 8))
+    assert a[:, 0, 6].tolist() == [-1.0, -1.0, 0.0, 0.0, 1.0]  # |g| < 0.25 holds the opening
+    assert torch.all(a[..., :6] == 1.0)  # arm actions clamp to the action range
+
+
+def test_image_variant_trains_and_runs_on_cpu(tmp_path, policy) -> None:
+    from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_DIM
+    from services.policy_worker.vla.model import VLAConfig
+    from services.policy_worker.vla.train import TrainConfig, train
+
+    rng = np.random.default_rng(1)
+    instr = sorted(policy.text.cache)[:2]
+    path = str(tmp_path / "demos.npz")
+    np.savez(path, states=rng.standard_normal((6, 156)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (6, 7)).astype(np.float32), episode_lengths=np.array([4, 2]),
+             instructions=np.array(instr), images=rng.integers(0, 255, (6, 32, 32, 3), dtype=np.uint8))
+    meta = train([path], str(tmp_path / "ck"), VLAConfig(image_size=32, prefix_hidden=32, width=16, expert_hidden=16),
+                 TrainConfig(steps=2, batch_size=4, warmup=1), log=lambda *_: None, text_cache=policy.text.cache)
+    assert meta["training"]["steps_done"] == 2
+    p = ZettaVLAPolicy(tmp_path / "ck", name="zetta-vla-image")
+    names = {s.name for s in p.input_specs()}
+    assert IMAGE_INPUTS[0] in names and "object_state" not in names
+    batch = {n: (rng.standard_normal((3, w)) * 0.1).astype(np.float32) for n, w in STATE_INPUTS[:4]}
+    batch[IMAGE_INPUTS[0]] = rng.integers(0, 255, (3, 32, 32, 3), dtype=np.uint8)
+    assert sum(w for _, w in STATE_INPUTS[:4]) == PROPRIO_DIM
+    assert p.infer(batch, [instr[0]] * 3).shape == (3, 8, 7)
 
 
 @pytest.mark.gpu

@@ -9,6 +9,15 @@
                                collect oracle demonstrations on LIBERO-Goal and train the Zetta VLA
   zetta eval-policy [--model zetta-vla-state] [--suites ...] [--seeds N]
                                closed-loop success per task with Wilson 95% intervals
+  zetta bench rollout [--concurrency 1,8,16,32,64] [--episodes N] [--max-steps N] [--write-docs]
+                               throughput sweep vs a naive loop, the stack without batching and
+                               sharing, and this machine's limit (docs/throughput.md)
+  zetta harness publish DIR | list | get REF [--out DIR] | diff A B | pin TASK [REF]
+                               versioned harness packages in the critic service's registry
+  zetta evolve --suite SUITE --tasks 6,9 --rounds N [--dev-seeds 50] [--heldout-seeds 20]
+                               profile, diagnose, repair, gate; resumable; Markdown report
+  zetta eval --harness NAME@VERSION --suite SUITE --tasks ...
+                               zero-shot transfer of an evolved harness, bare policy vs harness
 """
 
 from __future__ import annotations
@@ -197,6 +206,13 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 _FORWARDED = {
     "train": "services.policy_worker.vla.train",
     "eval-policy": "services.policy_worker.vla.evaluate",
+    # Versioned harness packages in the registry (docs/harness.md).
+    "harness": "zetta.harness",
+    # The throughput sweep against its baselines and the machine's limit (docs/throughput.md).
+    "bench": "zetta.bench_sweep",
+    # The evolution loops and zero-shot transfer of evolved harnesses (docs/evolution.md).
+    "evolve": "services.evolver.cmd_evolve",
+    "eval": "services.evolver.cmd_eval",
 }
 
 

@@ -71,6 +71,8 @@ class ResetResult:
     video_path: str = ""
     #: The episode's ordered milestones M; entry k names element k of the "milestones" tensors.
     milestone_names: list[str] = field(default_factory=list)
+    #: Content hash of the harness running over the episode; "" when none runs.
+    harness_content_hash: str = ""
 
 
 @dataclass
@@ -92,6 +94,13 @@ class StepResult:
     first_missing_milestone: str = ""
     #: Milestones of M observed so far, in order.
     milestones_reached: list[str] = field(default_factory=list)
+    #: With a harness: who acts next ("policy" or the recovery in control) and the intervention id.
+    harness_mode: str = ""
+    harness_intervention: str = ""
+    #: With a harness: how many of ``executed_actions`` a recovery chose instead of the policy.
+    recovery_actions: int = 0
+    #: With a harness, on the result that ended the episode: the episode's harness report.
+    harness_report: "HarnessReport | None" = None
 
     @property
     def done(self) -> bool:
@@ -117,11 +126,62 @@ class EpisodeSummary:
     milestone_names: list[str] = field(default_factory=list)
     milestones_reached: list[str] = field(default_factory=list)
     first_missing_milestone: str = ""
+    #: With a harness: who acted and every intervention of the episode.
+    harness_report: "HarnessReport | None" = None
+
+
+@dataclass
+class HarnessReport:
+    """What a harness did over an episode: action counts by mode and every intervention.
+
+    ``policy_share`` makes a success that recoveries did most of the work for visible as such.
+    """
+
+    harness: str
+    version: str
+    content_hash: str
+    policy_actions: int
+    recovery_actions: int
+    actions_by_mode: dict[str, int]
+    #: One dict per intervention: id, kind, proposer, evidence, details, decision, start_step,
+    #: end_step, outcome, actions.
+    interventions: list[dict[str, Any]]
+    interventions_by_kind: dict[str, int]
+    #: One dict per critic switched off: name, step, reason.
+    disabled_critics: list[dict[str, Any]]
+    proposals: int
+    rejected: int
+
+    @property
+    def policy_share(self) -> float:
+        """Share of the episode's actions chosen by the policy (1.0 when none were executed)."""
+        total = self.policy_actions + self.recovery_actions
+        return self.policy_actions / total if total else 1.0
+
+
+def _harness_report(m: types_pb2.HarnessReport | None) -> HarnessReport | None:
+    if m is None or not m.harness:
+        return None
+    return HarnessReport(
+        harness=m.harness, version=m.version, content_hash=m.content_hash,
+        policy_actions=m.policy_actions, recovery_actions=m.recovery_actions,
+        actions_by_mode=dict(m.actions_by_mode),
+        interventions=[
+            {"id": i.id, "kind": i.kind, "proposer": i.proposer, "evidence": i.evidence, "details": dict(i.details),
+             "decision": i.decision, "start_step": i.start_step, "end_step": i.end_step, "outcome": i.outcome,
+             "actions": i.actions}
+            for i in m.interventions
+        ],
+        interventions_by_kind=dict(m.interventions_by_kind),
+        disabled_critics=[{"name": d.name, "step": d.step, "reason": d.reason} for d in m.disabled_critics],
+        proposals=m.proposals, rejected=m.rejected,
+    )
 
 
 def _reset_result(m: types_pb2.ResetResult) -> ResetResult:
     return ResetResult(m.session_id, m.episode_id, decode_observation(m.observation), m.instruction, m.max_steps,
-                       video_path=m.video_path, milestone_names=list(m.milestone_names))
+                       video_path=m.video_path, milestone_names=list(m.milestone_names),
+                       harness_content_hash=m.harness_content_hash)
 
 
 def _step_result(m: types_pb2.StepResult) -> StepResult:
@@ -138,6 +198,10 @@ def _step_result(m: types_pb2.StepResult) -> StepResult:
         video_path=m.video_path,
         first_missing_milestone=m.first_missing_milestone,
         milestones_reached=list(m.milestones_reached),
+        harness_mode=m.harness_mode,
+        harness_intervention=m.harness_intervention,
+        recovery_actions=m.recovery_actions,
+        harness_report=_harness_report(m.harness_report) if m.HasField("harness_report") else None,
     )
 
 
@@ -155,13 +219,14 @@ def _summary(m: types_pb2.EpisodeSummary) -> EpisodeSummary:
         milestone_names=list(m.milestone_names),
         milestones_reached=list(m.milestones_reached),
         first_missing_milestone=m.first_missing_milestone,
+        harness_report=_harness_report(m.harness_report) if m.HasField("harness_report") else None,
     )
 
 
 def _reset_spec(task: str = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
-                record_video: bool = False) -> types_pb2.ResetSpec:
+                record_video: bool = False, harness: str = "", harness_dir: str = "") -> types_pb2.ResetSpec:
     return types_pb2.ResetSpec(task=str(task), seed=seed, init_state_index=init_state_index, instruction=instruction,
-                               record_video=record_video)
+                               record_video=record_video, harness=harness, harness_dir=harness_dir)
 
 
 def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0, timeout_ms: int = 0) -> types_pb2.PolicySpec:
@@ -277,14 +342,18 @@ class SessionGroup:
         init_state_index: int | Sequence[int] = 0,
         instruction: str = "",
         record_video: bool = False,
+        harness: str = "",
+        harness_dir: str = "",
     ) -> list[ResetResult]:
         """Start episodes; ``seed`` and ``init_state_index`` may be one value or one per session.
 
         ``record_video`` has each env worker write the episode as an MP4 (``ResetResult.video_path``).
+        ``harness`` ("NAME@VERSION" from the critic registry) or ``harness_dir`` (a package directory
+        on the env worker) runs a harness over the episode (docs/harness.md).
         """
         seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
         inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
-        specs = [_reset_spec(str(task), s, i, instruction, record_video) for s, i in zip(seeds, inits)]
+        specs = [_reset_spec(str(task), s, i, instruction, record_video, harness, harness_dir) for s, i in zip(seeds, inits)]
         resp = await self.gateway.call("Reset", gateway_pb2.ResetRequest(session_ids=self.ids, specs=specs))
         return [_reset_result(r) for r in resp.results]
 
@@ -326,16 +395,19 @@ class SessionGroup:
         max_steps: int = 0,
         execute_steps: int = 0,
         record_video: bool = False,
+        harness: str = "",
+        harness_dir: str = "",
     ) -> list[EpisodeSummary]:
         """Run whole episodes inside the workers (reset first when ``task`` is given).
 
-        ``record_video`` (with ``task``) writes each episode as an MP4 (``EpisodeSummary.video_path``).
+        ``record_video`` (with ``task``) writes each episode as an MP4 (``EpisodeSummary.video_path``);
+        ``harness``/``harness_dir`` (with ``task``) run a harness over them (``EpisodeSummary.harness_report``).
         """
         specs: list[types_pb2.ResetSpec] = []
         if task is not None:
             seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
             inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
-            specs = [_reset_spec(str(task), s, i, "", record_video) for s, i in zip(seeds, inits)]
+            specs = [_reset_spec(str(task), s, i, "", record_video, harness, harness_dir) for s, i in zip(seeds, inits)]
         resp = await self.gateway.call(
             "RunEpisode",
             gateway_pb2.RunEpisodeRequest(session_ids=self.ids, specs=specs, policy=_policy_spec(model, "", execute_steps),
@@ -364,9 +436,9 @@ class Session:
         self.session_id = session_id
 
     async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
-                    record_video: bool = False) -> ResetResult:
-        """Start an episode."""
-        spec = _reset_spec(str(task), seed, init_state_index, instruction, record_video)
+                    record_video: bool = False, harness: str = "", harness_dir: str = "") -> ResetResult:
+        """Start an episode (with a harness when ``harness`` or ``harness_dir`` is given)."""
+        spec = _reset_spec(str(task), seed, init_state_index, instruction, record_video, harness, harness_dir)
         return _reset_result(await self.gateway._batcher.submit("Reset", self.session_id, spec))
 
     async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0,
@@ -380,10 +452,12 @@ class Session:
         return _step_result(await self.gateway._batcher.submit("ActionStep", self.session_id, encode(np.asarray(action))))
 
     async def run_episode(self, task: str | int | None = None, seed: int = 0, init_state_index: int = 0,
-                          model: str = "", max_steps: int = 0, record_video: bool = False) -> EpisodeSummary:
+                          model: str = "", max_steps: int = 0, record_video: bool = False, execute_steps: int = 0,
+                          harness: str = "", harness_dir: str = "") -> EpisodeSummary:
         """Run a whole episode in the worker."""
         group = SessionGroup(self.gateway, [types_pb2.SessionInfo(session_id=self.session_id)])
-        return (await group.run_episode(task, seed, init_state_index, model, max_steps, record_video=record_video))[0]
+        return (await group.run_episode(task, seed, init_state_index, model, max_steps, execute_steps, record_video,
+                                        harness, harness_dir))[0]
 
     def stream(self) -> "StepStream":
         """A bidirectional stream for this session's step loop: one stream instead of a call per step."""

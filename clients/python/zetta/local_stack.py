@@ -98,6 +98,8 @@ class LocalStack:
     heartbeat_interval_ms: int = 1000
     heartbeat_timeout_ms: int = 3000
     redis_url: str | None = None
+    #: Also run the critic service (harness registry + Evaluate) with a store in the workdir.
+    critic: bool = True
     services: dict[str, Service] = field(default_factory=dict, init=False)
     redis_proc: subprocess.Popen[bytes] | None = field(default=None, init=False)
     redis_port: int = field(default=0, init=False)
@@ -124,6 +126,8 @@ class LocalStack:
             if self.redis_url is None:
                 self._start_redis()
             self.start_gateway()
+            if self.critic:
+                self.start_critic()
             for i in range(self.policy_workers):
                 self._start(
                     f"policy-{i}",
@@ -198,13 +202,35 @@ class LocalStack:
             port=port or (int(old.address.rsplit(":", 1)[1]) if old else None),
         )
 
+    @property
+    def critic_address(self) -> str:
+        """Address of the critic service (harness registry and Evaluate)."""
+        return self.services["critic"].address
+
+    def start_critic(self, port: int | None = None) -> Service:
+        """(Re)start the critic service, on the same port and package store when restarting."""
+        assert self.workdir is not None
+        old = self.services.get("critic")
+        return self._start(
+            "critic",
+            "services.critic.main",
+            {
+                "ZETTA_CRITIC_PORT": "{port}",
+                "ZETTA_REDIS_URL": self.redis_url or "",
+                "ZETTA_CRITIC_STORE": str(self.workdir / "critic-store"),
+            },
+            port=port or (int(old.address.rsplit(":", 1)[1]) if old else None),
+        )
+
     def start_env_worker(self, i: int) -> Service:
         """Start env worker ``i``."""
         policy = ",".join(s.address for n, s in self.services.items() if n.startswith("policy-"))
+        critic = {"ZETTA_CRITIC_ADDR": self.critic_address} if "critic" in self.services else {}
         return self._start(
             f"env-{i}",
             "services.env_worker.main",
             {
+                **critic,
                 "ZETTA_ENV_WORKER_PORT": "{port}",
                 "ZETTA_GATEWAY_ADDRESS": self.gateway_address,
                 "ZETTA_POLICY_ADDRESSES": policy,
@@ -241,7 +267,7 @@ class LocalStack:
         phases = [
             [s for n, s in self.services.items() if n.startswith("env-")],
             [s for n, s in self.services.items() if n.startswith("policy-")],
-            [s for n, s in self.services.items() if n == "gateway"],
+            [s for n, s in self.services.items() if n in ("gateway", "critic")],
         ]
         for phase in phases:
             for svc in phase:

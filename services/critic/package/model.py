@@ -14,9 +14,10 @@ from typing import Any
 
 @dataclass(frozen=True)
 class LoadedPackage:
-    """One immutable harness version: ``skill`` is SKILL.md's TOML front matter, ``params`` the
-    merged params/*.toml (file stem -> table), ``plans`` the merged plans/*.toml (file stem ->
-    table), ``tools`` the imported tools/*.py modules by stem, ``manifest`` manifest.json."""
+    """One immutable harness version: ``skill`` is SKILL.md's TOML front matter (``skill_text``
+    the markdown after it), ``params`` the merged params/*.toml (file stem -> table), ``plans``
+    the merged plans/*.toml (file stem -> table), ``tools`` the imported tools/*.py modules by
+    stem, ``manifest`` manifest.json (empty, and ``version`` "", for a directory never published)."""
 
     name: str
     version: str

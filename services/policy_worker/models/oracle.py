@@ -7,7 +7,12 @@ and whether the object is held (services/env_worker/families/task_state.py). The
 stage to a skill and never looks at the task's name or instruction:
 
 * ``on``/``in`` onto something raised, or into a container: pick and place
-  (:class:`~services.policy_worker.models.scripted.ScriptedPickPlacePolicy`'s motions);
+  (:class:`~services.policy_worker.models.scripted.ScriptedPickPlacePolicy`'s motions). Two
+  geometric cases are read off the boxes: an object under its target (an opened drawer slid over
+  the bowl it must receive) is gripped off the middle of its rim, where the hand clears the
+  drawer, and slid out of the target's footprint before it is lifted; an object that fits in a
+  deep dish (a bottle in a bowl) is lowered into it before it is let go, where dropped from above
+  the rim it would tip over;
 * ``on`` a region drawn on the table: push the object there with the closed gripper;
 * ``turnon``/``turnoff`` (a knob): push the lever along its tangent with a finger;
 * ``open``/``close`` of a drawer: turn the hand to face the handle, grasp the handle bar and pull
@@ -133,6 +138,24 @@ class OracleParams:
     bar_sag: float = 0.008
     #: Largest orientation error (rad) tolerated before moving in for a drawer grasp.
     bar_ori_tolerance: float = 0.15
+    # -- an object under its target (an opened drawer slid over it) ------------------------------
+    #: How far a fixture's walls and handle reach beyond the region it holds (its box grows by this).
+    cover_margin: float = 0.02
+    #: Half width of the hand across its finger axis: a rim grasp shifts along the rim until the
+    #: hand clears the cover, by at most ``cover_shift`` of the rim's radius.
+    hand_half_across: float = 0.035
+    cover_shift: float = 0.6
+    #: A grasped covered object is slid out of the cover's footprint this far beyond its edge,
+    #: raised on the way until its top is ``cover_headroom`` below the target's bottom (never
+    #: lowered: where there is less room it slides on the table).
+    cover_clearance: float = 0.015
+    cover_headroom: float = 0.04
+    # -- into a deep dish (on a bowl) -------------------------------------------------------------
+    #: An object at most ``sink_fit`` as wide as a deep dish (taller than ``shallow``, wider than
+    #: ``inside_extent``) is lowered into it and let go with its bottom ``sink_depth`` of the dish's
+    #: height below the rim; dropped from above the rim, a tall object tips over.
+    sink_fit: float = 0.5
+    sink_depth: float = 0.6
 
 
 class _SidedPick(ScriptedPickPlacePolicy):
@@ -142,6 +165,21 @@ class _SidedPick(ScriptedPickPlacePolicy):
     """
 
     side: tuple[int, float] = (1, 1.0)
+    #: Offset of a rim grasp along the rim (across the finger axis), from the rim's middle.
+    shift: float = 0.0
+    #: How far below the target's top the held object's bottom is let go (0: just above it).
+    sink: float = 0.0
+
+    def _carry(self, center: np.ndarray, bottom: float, target_center: np.ndarray, target_top: float) -> np.ndarray:
+        p = self.params
+        if self.sink <= 0.0 or np.linalg.norm(center[:2] - target_center[:2]) > p.carry_xy_tolerance:
+            return super()._carry(center, bottom, target_center, target_top)
+        # Over the dish: down inside it before letting go.
+        held = np.array([center[0], center[1], bottom])
+        release = np.array([target_center[0], target_center[1], target_top - self.sink])
+        if abs(bottom - release[2]) > p.z_tolerance or np.linalg.norm(center[:2] - release[:2]) > p.xy_tolerance:
+            return self._move(held, release, _CLOSE, p.carry_max_action)
+        return self._action(np.zeros(3), _OPEN)
 
     def _grasp_point(self, obj: np.ndarray) -> np.ndarray:
         p = self.params
@@ -150,7 +188,14 @@ class _SidedPick(ScriptedPickPlacePolicy):
         if (obj[3 + axis] - obj[axis]) / 2 <= p.max_center_half_width:
             return np.array([center[0], center[1], max(obj[5] - p.grasp_depth, obj[2] + p.min_grasp_height)])
         point = np.array([center[0], center[1], max(obj[5] - p.rim_depth, obj[2] + p.min_grasp_height)])
-        point[axis] = (obj[3 + axis] - p.rim_inset) if sign > 0 else (obj[axis] + p.rim_inset)
+        if not self.shift:
+            point[axis] = (obj[3 + axis] - p.rim_inset) if sign > 0 else (obj[axis] + p.rim_inset)
+            return point
+        radius = (obj[3 + axis] - obj[axis]) / 2
+        point[1 - axis] += self.shift
+        # The rim is round: off its middle it lies closer to the centre along the finger axis.
+        reach = float(np.sqrt(max(radius * radius - self.shift * self.shift, 0.0))) - p.rim_inset
+        point[axis] = center[axis] + sign * reach
         return point
 
 
@@ -231,8 +276,14 @@ class OraclePolicy:
             action = self._move(eef, eef - hand[:, 2] * p.reorient_backoff + [0.0, 0.0, p.reorient_backoff], _OPEN, 1.0)
         else:
             held = bool(obs["task_grasped"][0] > 0.5)
-            axis, sign = self._grasp_side(obs["task_object_bbox"], obs["task_target_bbox"])
+            obj, target = obs["task_object_bbox"], obs["task_target_bbox"]
+            axis, sign = self._grasp_side(obj, target)
+            cover = self._cover(obj, target)
+            if held and cover is not None:
+                return self._slide_out(obs, cover)
             self._pick.side = (axis, sign)
+            self._pick.shift = self._rim_shift(obj, axis, cover if _overlap(obj, target) else None)
+            self._pick.sink = self._sink(obs)
             self._pick.params = self._axis_params[axis]
             action = self._pick._act(
                 obs["robot0_eef_pos"], obs["robot0_gripper_qpos"], obs["task_object_bbox"],
@@ -263,6 +314,57 @@ class OraclePolicy:
         toward = np.asarray(self.params.robot_side, dtype=np.float64)
         axis = int(np.argmax(np.abs(toward)))
         return axis, float(np.sign(toward[axis]))
+
+    # -- an object under its target ---------------------------------------------------------------
+
+    def _cover(self, obj: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+        """The target's box grown by the fixture around it, when the target lies over the object.
+
+        An opened drawer can slide over the object it must receive: lifting the object straight up
+        would hit the drawer's floor, and a hand coming down over its footprint its walls.
+        """
+        if not obj.any() or not target.any() or obj[5] >= target[2]:
+            return None
+        m = self.params.cover_margin
+        cover = np.concatenate([target[:3] - [m, m, 0.0], target[3:] + [m, m, 0.0]])
+        return cover if _overlap(obj, cover) else None
+
+    def _rim_shift(self, obj: np.ndarray, axis: int, cover: np.ndarray | None) -> float:
+        """How far along the rim to grasp so the hand (narrow across its finger axis) clears the cover."""
+        if cover is None or (obj[3 + axis] - obj[axis]) / 2 <= self.params.pick.max_center_half_width:
+            return 0.0
+        p = self.params
+        across = 1 - axis
+        center = (obj[across] + obj[3 + across]) / 2
+        away = center - (cover[across] + cover[3 + across]) / 2
+        limit = p.cover_shift * (obj[3 + axis] - obj[axis]) / 2
+        if away > 0:
+            return float(np.clip(cover[3 + across] + p.hand_half_across - center, 0.0, limit))
+        return float(np.clip(cover[across] - p.hand_half_across - center, -limit, 0.0))
+
+    def _slide_out(self, obs: dict[str, np.ndarray], cover: np.ndarray) -> np.ndarray:
+        """Slide the grasped object horizontally out of the cover's footprint, the shortest way."""
+        p = self.params
+        obj = obs["task_object_bbox"]
+        exits = np.array([cover[3] - obj[0], cover[4] - obj[1], obj[3] - cover[0], obj[4] - cover[1]])
+        k = int(np.argmin(exits))
+        step = np.zeros(3)
+        step[k % 2] = (exits[k] + p.cover_clearance) * (1.0 if k < 2 else -1.0)
+        step[2] = max(cover[2] - p.cover_headroom - obj[5], 0.0)
+        return self._move(obs["robot0_eef_pos"], obs["robot0_eef_pos"] + step, _CLOSE, p.pick.carry_max_action)
+
+    def _sink(self, obs: dict[str, np.ndarray]) -> float:
+        """How deep into the target a held object is let go: inside a deep dish (a bowl) that it fits
+        in, for an ``on`` stage; 0 (just above the target) otherwise."""
+        p = self.params
+        obj, target = obs["task_object_bbox"], obs["task_target_bbox"]
+        stage = obs["task_stage"]
+        if not obj.any() or not target.any() or not stage.any() or STAGE_KINDS[int(np.argmax(stage))] != "on":
+            return 0.0
+        height = float(target[5] - target[2])
+        dish = height >= p.shallow and self._dish(target)
+        fits = float(np.max(obj[3:5] - obj[:2])) <= p.sink_fit * float(np.min(target[3:5] - target[:2]))
+        return p.sink_depth * height if dish and fits else 0.0
 
     @staticmethod
     def _tilted(obs: dict[str, np.ndarray], angle: float) -> bool:
@@ -450,6 +552,11 @@ class OraclePolicy:
             action = self._move(eef, grasp, self._aperture(gap, p.bar_open_gap), p.handle_max_action)
         action[3:6] = self._orient(obs, desired)
         return action
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """The two boxes overlap horizontally."""
+    return bool(a[0] < b[3] and b[0] < a[3] and a[1] < b[4] and b[1] < a[4])
 
 
 def _handle_frame(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

@@ -48,11 +48,20 @@ class DataRecipe:
     #: teacher's action and kept, failed episodes included (the labels are the teacher's).
     dagger_checkpoint: str = ""
     beta: float = 0.5
+    #: DART-style perturbation: Gaussian noise of this std is added to the executed arm action
+    #: (not the gripper, not the recorded label), so demos cover the states just off the
+    #: teacher's path that a learned policy drifts into, each labelled with the teacher's correction.
+    action_noise: float = 0.0
+    #: DAgger: the student's chunk runs this many actions before it is asked again (as in evaluation).
+    execute_steps: int = 1
+    #: Run only the first N episodes of :meth:`episodes` (0: all); a deterministic cut, unlike a time budget.
+    max_episodes: int = 0
 
     def episodes(self) -> list[tuple[int, int, int]]:
         """(task, seed, init_state_index), interleaved over tasks so a time budget cuts evenly."""
-        return [(t, self.seed_offset + s, (self.seed_offset + s) % 50)
-                for s in range(self.seeds_per_task) for t in self.tasks]
+        eps = [(t, self.seed_offset + s, (self.seed_offset + s) % 50)
+               for s in range(self.seeds_per_task) for t in self.tasks]
+        return eps[: self.max_episodes] if self.max_episodes else eps
 
 
 def _worker(recipe: dict, jobs, results) -> None:
@@ -74,23 +83,36 @@ def _worker(recipe: dict, jobs, results) -> None:
 
         torch.set_num_threads(1)
         student = ZettaVLAPolicy(recipe["dagger_checkpoint"])
-    rng = np.random.default_rng(os.getpid())
     names = [n for n, _ in STATE_INPUTS]
+    student_names = [sp.name for sp in student.input_specs()] if student is not None else []
+    execute = max(1, int(recipe.get("execute_steps", 1)))
     while True:
         job = jobs.get()
         if job is None:
             break
         task, seed, init = job
+        rng = np.random.default_rng(seed)  # per episode: the noise and the beta mixing replay
         try:
             obs, instruction = slot.reset(ResetSpec(task=str(task), seed=seed, init_state_index=init))
             states, actions, images = [], [], []
             success = False
+            queued: list[np.ndarray] = []  # the rest of the student's chunk, as served policies run it
+            teacher_turn = True
             while True:
                 batch = {k: v[None] for k, v in obs.items()}
                 action = teacher.infer(batch, [instruction])[0, 0]
                 executed = action
-                if student is not None and rng.random() >= recipe["beta"]:
-                    executed = student.infer({n: obs[n][None] for n in names}, [instruction])[0, 0]
+                if student is not None:
+                    if not queued:  # who drives is drawn once per chunk of ``execute`` steps
+                        teacher_turn = rng.random() < recipe["beta"]
+                        chunk = student.infer({n: obs[n][None] for n in student_names}, [instruction])[0]
+                        queued = list(chunk[:execute])
+                    student_action = queued.pop(0)
+                    if not teacher_turn:
+                        executed = student_action
+                elif recipe.get("action_noise"):
+                    executed = action.copy()
+                    executed[:6] = np.clip(executed[:6] + rng.normal(0.0, recipe["action_noise"], 6), -1.0, 1.0)
                 states.append(state_vector({n: obs[n][None] for n in names})[0])
                 if recipe["image_size"]:
                     images.append(obs[IMAGE_INPUTS[0]])
@@ -193,13 +215,18 @@ def main(argv=None) -> int:
     p.add_argument("--dagger-checkpoint", default="")
     p.add_argument("--beta", type=float, default=0.5)
     p.add_argument("--seed-offset", type=int, default=1000)
+    p.add_argument("--action-noise", type=float, default=0.0, help="DART noise std on the executed arm action")
+    p.add_argument("--execute-steps", type=int, default=1, help="DAgger: student actions run per chunk")
+    p.add_argument("--max-episodes", type=int, default=0, help="run only the first N episodes of the list")
     a = p.parse_args(argv)
     teacher = a.teacher or default_teacher()
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
         list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS))
     recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
                         image_size=a.image_size, time_budget_s=a.time_budget,
-                        dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset)
+                        dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
+                        action_noise=a.action_noise, execute_steps=a.execute_steps,
+                        max_episodes=a.max_episodes)
     print(json.dumps(collect(recipe, a.out), indent=2))
     return 0
 

@@ -18,8 +18,6 @@ from pathlib import Path
 from zetta.stats import wilson
 
 
-
-
 def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results) -> None:
     os.environ.update(env)
     import numpy as np
@@ -115,7 +113,7 @@ def table(rows: list[dict], task_names: dict[str, list[str]] | None = None) -> s
             lo, hi = wilson(k, n)
             seeds = sorted(r["seed"] for r in rs)
             name = (task_names or {}).get(suite, [])
-            label = f"{t} {name[t]}" if t < len(name) else str(t)
+            label = f"{t} {name[t]}" if t < len(name) else f"{t} {rs[0].get('instruction', '')}".strip()
             lines.append(f"| {suite} | {label} | {k}/{n} | {k / n:.0%} | {lo:.0%}-{hi:.0%} | {seeds[0]}-{seeds[-1]} |")
         lo, hi = wilson(total_s, total_n)
         lines.append(f"| **{suite}** | **all** | **{total_s}/{total_n}** | **{total_s / max(total_n, 1):.0%}** | "
@@ -137,7 +135,11 @@ def main(argv=None) -> int:
     p.add_argument("--quantize", default="", help="ZETTA_VLA_QUANTIZE for the policy (e.g. w8a8)")
     p.add_argument("--checkpoint", default="")
     p.add_argument("--out", default="out/eval/episodes.jsonl")
+    p.add_argument("--report", default="", help="print the table of an existing episodes .jsonl and stop")
     a = p.parse_args(argv)
+    if a.report:
+        print(table([json.loads(line) for line in Path(a.report).read_text().splitlines() if line.strip()]))
+        return 0
     env = {}
     if a.quantize:
         env["ZETTA_VLA_QUANTIZE"] = a.quantize

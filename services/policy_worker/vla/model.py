@@ -26,6 +26,9 @@ from torch import nn
 from services.policy_worker.vla.features import ACTION_DIM, PROPRIO_DIM, STATE_DIM
 from services.policy_worker.vla.text import TEXT_DIM
 
+#: Gripper outputs below this magnitude mean "hold" (0); the teacher commands -1, -0.5, 0, 0.5, 1.
+GRIPPER_DEADZONE = 0.25
+
 
 @dataclass
 class VLAConfig:
@@ -36,9 +39,9 @@ class VLAConfig:
     image_size: int = 0
     width: int = 128
     prefix_tokens: int = 4
-    prefix_hidden: int = 512
+    prefix_hidden: int = 256
     chunk: int = 8
-    expert_hidden: int = 256
+    expert_hidden: int = 128
     expert_blocks: int = 3
     flow_steps: int = 10
     action_dim: int = ACTION_DIM
@@ -187,10 +190,16 @@ class ZettaVLA(nn.Module):
         return self.encoder(self.normalize_state(state), text, image)
 
     def act(self, prefix: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-        """Stage 2; returns actions in environment units, gripper snapped to +-1."""
+        """Stage 2; returns actions in environment units, gripper snapped to -1, 0 or +1.
+
+        The Panda gripper integrates the sign of its command (0 holds the current opening, which
+        the teacher uses to keep a partial aperture), so three levels lose nothing and remove the
+        flicker of a regressed value near a mode boundary.
+        """
         a = self.expert(prefix, noise) * self.action_std + self.action_mean
         a = a.clamp(-1.0, 1.0)
-        a[..., -1] = torch.where(a[..., -1] >= 0, 1.0, -1.0)
+        g = a[..., -1]
+        a[..., -1] = torch.where(g.abs() < GRIPPER_DEADZONE, torch.zeros_like(g), torch.sign(g))
         return a
 
     def loss(self, state, text, actions_norm, image=None) -> torch.Tensor:

@@ -10,6 +10,7 @@ import json
 import random
 import time
 from dataclasses import asdict, dataclass
+from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from services.policy_worker.vla.text import TextEncoder
 @dataclass
 class TrainConfig:
     steps: int = 20000
-    batch_size: int = 256
+    batch_size: int = 128
     lr: float = 3e-4
     weight_decay: float = 1e-4
     warmup: int = 500
@@ -63,7 +64,8 @@ def chunk_targets(actions: np.ndarray, lengths: np.ndarray, chunk: int) -> np.nd
 
 
 def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = None, cfg: TrainConfig | None = None,
-          log=print, text_cache: dict | None = None, init: str = "") -> dict:
+          log=print, text_cache: dict | None = None, init: str = "", extra_meta: dict | None = None) -> dict:
+    """Train (or, with ``init``, fine-tune) on the demo files and save a checkpoint to ``out_dir``."""
     cfg = cfg or TrainConfig()
     model_cfg = model_cfg or VLAConfig()
     torch.manual_seed(cfg.seed)
@@ -148,47 +150,108 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
                      "final_loss": float(np.mean(losses[-500:])), "device": str(device)},
         "data": {"files": [str(p) for p in demo_paths], "demos": int(len(lengths)), "transitions": int(n),
                  "instructions": uniq, "recipes": demos["recipes"]},
+        **(extra_meta or {}),
     }
     save_checkpoint(out_dir, model, meta, texts.cache)
     log(f"saved {out_dir} ({sum(f.stat().st_size for f in Path(out_dir).iterdir()) / 1e6:.1f} MB) after {seconds:.0f}s")
     return meta
 
 
+@dataclass
+class PipelineConfig:
+    """What `zetta train` runs end to end, stored in the checkpoint's config.json.
+
+    Behaviour cloning alone compounds small errors into states the teacher never visited; the
+    recipe covers them twice: DART-noisy demos (the teacher's correction recorded at perturbed
+    states) and DAgger rounds (the policy drives, the teacher labels every visited state, the
+    aggregate fine-tunes the policy from its previous weights). Episode counts are cuts of the
+    task-interleaved episode list (``DataRecipe.max_episodes``), so every task gets its share.
+    """
+
+    clean_episodes: int = 353
+    noisy_episodes: int = 252
+    action_noise: float = 0.15
+    steps: int = 3000
+    lr: float = 1e-3
+    dagger_rounds: int = 2
+    dagger_episodes: int = 100
+    beta: float = 0.2
+    execute_steps: int = 2
+    finetune_steps: int = 3000
+    finetune_lr: float = 5e-4
+
+
+def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int], processes: int,
+                 train_cfg: TrainConfig, model_cfg: VLAConfig, demo_dir: str = "out/demos", log=print) -> dict:
+    """Demos (clean + DART-noisy) -> training -> DAgger rounds; the last checkpoint lands in ``out``."""
+    from services.policy_worker.vla.data import DataRecipe, collect
+
+    def gather(name: str, episodes: int, **kw) -> str:
+        path = f"{demo_dir}/{name}.npz"
+        recipe = DataRecipe(tasks=tasks, teacher=teacher, processes=processes, image_size=model_cfg.image_size,
+                            seeds_per_task=-(-episodes // len(tasks)), max_episodes=episodes, **kw)
+        log(json.dumps(collect(recipe, path, log=log)))
+        return path
+
+    meta = {"pipeline": asdict(pipe)}
+    data = [gather("clean", pipe.clean_episodes, seed_offset=1000)]
+    if pipe.noisy_episodes:
+        data.append(gather("noisy", pipe.noisy_episodes, seed_offset=2000, action_noise=pipe.action_noise))
+    stages = [f"{out}-round{r}" for r in range(pipe.dagger_rounds)] + [out]
+    result = train(data, stages[0], model_cfg, dataclasses_replace(train_cfg, steps=pipe.steps, lr=pipe.lr),
+                   log=log, extra_meta=meta)
+    for r in range(pipe.dagger_rounds):
+        data.append(gather(f"dagger{r + 1}", pipe.dagger_episodes, seed_offset=3000 + 1000 * r,
+                           dagger_checkpoint=stages[r], beta=pipe.beta, execute_steps=pipe.execute_steps))
+        result = train(data, stages[r + 1], model_cfg,
+                       dataclasses_replace(train_cfg, steps=pipe.finetune_steps, lr=pipe.finetune_lr),
+                       log=log, init=stages[r], extra_meta=meta)
+    return result
+
+
 def main(argv=None) -> int:
     import argparse
 
-    from services.policy_worker.vla.data import PICK_PLACE_TASKS, DataRecipe, collect, default_teacher
+    from services.policy_worker.vla.data import PICK_PLACE_TASKS, default_teacher
 
     p = argparse.ArgumentParser(prog="zetta train", description="collect demos and train the Zetta VLA")
     p.add_argument("--variant", choices=("state", "image"), default="state")
-    p.add_argument("--data", nargs="*", default=[], help="existing demo .npz files (skip collection)")
+    p.add_argument("--data", nargs="*", default=[], help="existing demo .npz files (skip collection and DAgger)")
     p.add_argument("--out", default="", help="checkpoint directory (default out/checkpoints/zetta-vla-<variant>)")
     p.add_argument("--teacher", default="")
-    p.add_argument("--seeds-per-task", type=int, default=40)
-    p.add_argument("--collect-budget", type=float, default=0.0, help="seconds of demo collection at most")
     p.add_argument("--processes", type=int, default=2)
-    p.add_argument("--steps", type=int, default=TrainConfig.steps)
+    p.add_argument("--clean-episodes", type=int, default=PipelineConfig.clean_episodes)
+    p.add_argument("--noisy-episodes", type=int, default=PipelineConfig.noisy_episodes)
+    p.add_argument("--action-noise", type=float, default=PipelineConfig.action_noise)
+    p.add_argument("--dagger-rounds", type=int, default=PipelineConfig.dagger_rounds)
+    p.add_argument("--dagger-episodes", type=int, default=PipelineConfig.dagger_episodes)
+    p.add_argument("--beta", type=float, default=PipelineConfig.beta)
+    p.add_argument("--execute-steps", type=int, default=PipelineConfig.execute_steps)
+    p.add_argument("--finetune-steps", type=int, default=PipelineConfig.finetune_steps)
+    p.add_argument("--finetune-lr", type=float, default=PipelineConfig.finetune_lr)
+    p.add_argument("--demo-dir", default="out/demos")
+    p.add_argument("--steps", type=int, default=PipelineConfig.steps)
     p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-    p.add_argument("--time-budget", type=float, default=0.0, help="seconds of training at most")
+    p.add_argument("--time-budget", type=float, default=0.0, help="seconds of training at most (each run)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64)
-    p.add_argument("--init", default="", help="checkpoint to fine-tune from (DAgger rounds)")
-    p.add_argument("--lr", type=float, default=TrainConfig.lr)
+    p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data)")
+    p.add_argument("--lr", type=float, default=PipelineConfig.lr)
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
-    data = list(a.data)
-    if not data:
-        teacher = a.teacher or default_teacher()
-        tasks = list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS)
-        recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
-                            image_size=image_size, time_budget_s=a.collect_budget)
-        path = f"out/demos/libero_goal_{a.variant}.npz"
-        print(json.dumps(collect(recipe, path), indent=2))
-        data = [path]
-    train(data, out, VLAConfig(image_size=image_size),
-          TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr),
-          init=a.init)
+    model_cfg = VLAConfig(image_size=image_size)
+    train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr)
+    if a.data:
+        train(list(a.data), out, model_cfg, train_cfg, init=a.init)
+        return 0
+    teacher = a.teacher or default_teacher()
+    tasks = list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS)
+    pipe = PipelineConfig(
+        clean_episodes=a.clean_episodes, noisy_episodes=a.noisy_episodes, action_noise=a.action_noise,
+        steps=a.steps, lr=a.lr, dagger_rounds=a.dagger_rounds, dagger_episodes=a.dagger_episodes, beta=a.beta,
+        execute_steps=a.execute_steps, finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr)
+    run_pipeline(out, pipe, teacher, tasks, a.processes, train_cfg, model_cfg, demo_dir=a.demo_dir)
     return 0
 
 

@@ -1,0 +1,409 @@
+"""Generic recoveries: bounded, object-relative routines that take control from the policy.
+
+A recovery is built fresh for each intervention from its parameters, started on the window that
+triggered it, and asked for one action per env step until it returns ``None`` (finished; then
+``status`` says ``done`` or ``failed``). The runtime, not the recovery, decides when control goes
+back to the policy (the re-entry contract, services/critic/runtime/reentry.py). All motion targets
+are recomputed every step from the live object and target boxes, so a recovery follows an object
+that moves and never replays a recorded trajectory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.critic.runtime.api import Window
+from services.critic.runtime.library import tools as t
+from services.critic.runtime.library.schema import Param, RecoverySpec
+
+RUNNING, DONE, FAILED = "running", "done", "failed"
+
+
+@dataclass
+class EpisodeMemory:
+    """What recoveries remember within one episode: grasps that failed (so no retry repeats an
+    equivalent one) and the last grasp a recovery made (charged as failed if it is needed again)."""
+
+    failed_grasps: list[t.GraspProposal] = field(default_factory=list)
+    last_grasp: t.GraspProposal | None = None
+
+
+class Recovery:
+    """Base: ``start`` once, then ``act`` every step until it returns None."""
+
+    name = "recovery"
+
+    def __init__(self, params: Mapping[str, float]) -> None:
+        self.p = dict(params)
+        self.status = RUNNING
+        self.memory = EpisodeMemory()
+        #: Why the recovery failed, when it did.
+        self.reason = ""
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        """Begin on the window that triggered the intervention."""
+        self.memory = memory
+
+    def act(self, w: Window) -> np.ndarray | None:
+        """The next action, or None once finished."""
+        raise NotImplementedError
+
+    def _finish(self, status: str, reason: str = "") -> None:
+        self.status, self.reason = status, reason
+
+
+def _hold(gripper: float = t.KEEP) -> np.ndarray:
+    return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gripper])
+
+
+class Freeze(Recovery):
+    """Stop all motion for ``steps`` steps, keeping the gripper as it is."""
+
+    name = "freeze"
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        self._left = int(self.p["steps"])
+
+    def act(self, w: Window) -> np.ndarray | None:
+        if self._left <= 0:
+            self._finish(DONE)
+            return None
+        self._left -= 1
+        return _hold()
+
+
+class ReleaseAndRestage(Recovery):
+    """Open the gripper and rise to ``rise`` above the live object's top."""
+
+    name = "release_and_restage"
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        eef = t.vec(now, "robot0_eef_pos")
+        obj = t.vec(now, "task_object_bbox")
+        goal_z = (obj[5] if t.has_box(obj) else eef[2]) + self.p["rise"]
+        opened = t.scalar(now, "phi_gripper_aperture") >= self.p["open_gap"]
+        if opened and eef[2] >= goal_z - self.p["tolerance"]:
+            self._finish(DONE)
+            return None
+        goal = np.array([eef[0], eef[1], max(goal_z, eef[2])])
+        return t.move_action(eef, goal, t.OPEN, max_action=self.p["max_action"])
+
+
+class Pregrasp(Recovery):
+    """Move, hand open and pointing down, to ``hover`` above a fresh object-relative grasp (none
+    equivalent to a failed one), rising first over anything in the straight line."""
+
+    name = "pregrasp"
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        box = t.vec(w.now, "task_object_bbox")
+        self.proposal = t.fresh_grasp(box, memory.failed_grasps, self.p["equivalence"], self.p) if t.has_box(box) else None
+
+    def act(self, w: Window) -> np.ndarray | None:
+        if self.proposal is None:
+            self._finish(FAILED, "no grasp proposal left that has not failed")
+            return None
+        now = w.now
+        eef, box = t.vec(now, "robot0_eef_pos"), t.vec(now, "task_object_bbox")
+        goal = self.proposal.point(box) + [0.0, 0.0, self.p["hover"]]
+        hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
+        desired = t.hand_down(np.eye(3)[self.proposal.finger_axis][:2], hand)
+        turned = float(np.linalg.norm(t.rotvec(desired @ hand.T)))
+        if np.linalg.norm(goal - eef) < self.p["tolerance"] and turned < self.p["angle_tolerance"]:
+            self._finish(DONE)
+            return None
+        obstacles = [t.vec(now, "task_target_bbox"), box]
+        waypoint = t.clear_waypoint(eef, goal, obstacles, self.p["margin"], self.p["clearance"])
+        action = t.move_action(eef, waypoint, t.OPEN, max_action=self.p["max_action"])
+        action[3:6] = t.orient_action(t.vec(now, "robot0_eef_quat"), desired)
+        return action
+
+
+class Regrasp(Recovery):
+    """Bounded regrasp with a memory of failed grasps: release and restage, pregrasp on a fresh
+    proposal, descend, close, and check the grasp holds through a short lift; a failed attempt
+    (closed on nothing, slipped in the lift, or blocked on the way) is remembered and the next one
+    uses a different proposal, up to ``max_attempts``."""
+
+    name = "regrasp"
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        if memory.last_grasp is not None:  # the previous grasp did not last: never propose it again
+            memory.failed_grasps.append(memory.last_grasp)
+            memory.last_grasp = None
+        self.attempts = 0
+        self._begin_attempt(w)
+
+    def _begin_attempt(self, w: Window) -> None:
+        self.phase = "restage"
+        self._restage = ReleaseAndRestage(self.p)
+        self._restage.start(w, self.memory)
+        self._pregrasp = Pregrasp(self.p)
+        self._pregrasp.start(w, self.memory)
+        self._closing = 0
+        self._lift_from = 0.0
+        self._phase_seen, self._phase_steps = "", 0
+
+    def _stalled(self, w: Window, eef: np.ndarray) -> bool:
+        """The hand has not moved ``stall_motion`` over the last ``stall_steps`` steps of this phase
+        (an obstacle, a joint limit, or the controller settling short of its goal)."""
+        if self.phase != self._phase_seen:
+            self._phase_seen, self._phase_steps = self.phase, 0
+        self._phase_steps += 1
+        n = int(self.p["stall_steps"])
+        if self._phase_steps <= n or len(w.frames) <= n:
+            return False
+        return float(np.linalg.norm(eef - t.vec(w.frames[-n], "robot0_eef_pos"))) < self.p["stall_motion"]
+
+    def _fail_attempt(self, w: Window, why: str) -> np.ndarray | None:
+        proposal = self._pregrasp.proposal
+        if proposal is not None:
+            self.memory.failed_grasps.append(proposal)
+        self.attempts += 1
+        if self.attempts >= int(self.p["max_attempts"]):
+            self._finish(FAILED, f"{self.attempts} grasp attempts failed (last: {why})")
+            return None
+        self._begin_attempt(w)
+        return self.act(w)
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        eef = t.vec(now, "robot0_eef_pos")
+        if self.phase == "restage":
+            action = self._restage.act(w)
+            if action is not None and not self._stalled(w, eef):
+                return action
+            self.phase = "pregrasp"  # restaged, or as high as the arm gets
+        if self.phase == "pregrasp":
+            action = self._pregrasp.act(w)
+            if action is not None:
+                if self._stalled(w, eef):
+                    return self._fail_attempt(w, "blocked on the way to the pregrasp")
+                return action
+            if self._pregrasp.status == FAILED:
+                self._finish(FAILED, self._pregrasp.reason)
+                return None
+            self.phase = "descend"
+        proposal = self._pregrasp.proposal
+        assert proposal is not None
+        box = t.vec(now, "task_object_bbox")
+        hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
+        rot = t.orient_action(t.vec(now, "robot0_eef_quat"), t.hand_down(np.eye(3)[proposal.finger_axis][:2], hand))
+        if self.phase == "descend":
+            grasp = proposal.point(box)
+            error = float(np.linalg.norm(grasp - eef))
+            if error < self.p["tolerance"]:
+                self.phase = "close"
+            elif self._stalled(w, eef):
+                if error > 2.5 * self.p["tolerance"]:
+                    return self._fail_attempt(w, "blocked on the way down")
+                self.phase = "close"  # settled just short of the grip point: close there
+            else:
+                action = t.move_action(eef, grasp, t.OPEN, max_action=self.p["max_action"])
+                action[3:6] = rot
+                return action
+        if self.phase == "close":
+            if self._closing < int(self.p["close_steps"]):
+                self._closing += 1
+                return _hold(t.CLOSE)
+            if not t.grasped(now):
+                return self._fail_attempt(w, "closed without a grasp")
+            self.phase, self._lift_from = "lift", float(eef[2])
+        if not t.grasped(now):
+            return self._fail_attempt(w, "grasp lost in the lift check")
+        if eef[2] - self._lift_from >= self.p["lift"]:
+            self.memory.last_grasp = proposal
+            self._finish(DONE)
+            return None
+        goal = np.array([eef[0], eef[1], self._lift_from + self.p["lift"] + 0.01])
+        return t.move_action(eef, goal, t.CLOSE, max_action=self.p["carry_max_action"])
+
+
+class FineAlignment(Recovery):
+    """Keep the grasp and bring the held object over the live target with small arm motions:
+    its centre over the target's centre, its bottom ``clearance`` above the target's top."""
+
+    name = "fine_alignment"
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        if not any(t.grasped(f) for f in w.frames[-int(self.p["lost_steps"]):]):
+            self._finish(FAILED, "the object is not held")
+            return None
+        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+        if not t.has_box(target):
+            self._finish(FAILED, "the stage has no target")
+            return None
+        center = t.box_center(obj)
+        held = np.array([center[0], center[1], obj[2]])
+        tc = t.box_center(target)
+        goal = np.array([tc[0], tc[1], target[5] + self.p["clearance"]])
+        if np.linalg.norm(held[:2] - goal[:2]) < self.p["tolerance"] and abs(held[2] - goal[2]) < self.p["z_tolerance"]:
+            self._finish(DONE)
+            return None
+        if held[2] < goal[2] - 0.02 and np.linalg.norm(held[:2] - goal[:2]) > self.p["tolerance"]:
+            goal = np.array([held[0], held[1], goal[2]])  # rise before moving across
+        return t.move_action(held, goal, t.CLOSE, gain=self.p["gain"], max_action=self.p["max_action"])
+
+
+class LowerUntilSupportedThenRelease(Recovery):
+    """Lower the held object over the target until it is supported (it stops following the hand,
+    or its bottom reaches the target's floor), then open the gripper."""
+
+    name = "lower_until_supported_then_release"
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        self.phase = "lower"
+        self._opening = 0
+        self._steps = 0
+
+    def _supported(self, w: Window) -> bool:
+        now = w.now
+        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+        if obj[2] <= target[2] + self.p["gap"]:
+            return True
+        n = int(self.p["stall_steps"])
+        if len(w.frames) < n:
+            return False
+        z0 = t.vec(w.frames[-n], "task_object_bbox")[2]
+        return abs(obj[2] - z0) < self.p["stall_motion"]
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+        if self.phase == "lower":
+            if not t.has_box(target):
+                self._finish(FAILED, "the stage has no target")
+                return None
+            self._steps += 1
+            if not t.grasped(now) or (self._steps > int(self.p["stall_steps"]) and self._supported(w)):
+                self.phase = "release"
+            else:
+                tc = t.box_center(target)
+                center = t.box_center(obj)
+                held = np.array([center[0], center[1], obj[2]])
+                goal = np.array([tc[0], tc[1], target[2]])
+                return t.move_action(held, goal, t.CLOSE, max_action=self.p["speed"], min_action=0.0)
+        if t.scalar(now, "phi_gripper_aperture") >= self.p["open_gap"] or self._opening >= int(self.p["release_steps"]):
+            self._finish(DONE)
+            return None
+        self._opening += 1
+        return _hold(t.OPEN)
+
+
+class RetreatUntilSeparated(Recovery):
+    """Gripper open, move straight up until the grip site is ``distance`` from the object's box."""
+
+    name = "retreat_until_separated"
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        if t.scalar(now, "phi_eef_object_dist") >= self.p["distance"] and t.scalar(now, "phi_grasp") < 0.5:
+            self._finish(DONE)
+            return None
+        eef = t.vec(now, "robot0_eef_pos")
+        return t.move_action(eef, eef + [0.0, 0.0, 0.05], t.OPEN, max_action=self.p["max_action"])
+
+
+class Chain(Recovery):
+    """Several recoveries one after the other (a playbook's steps); fails as soon as one fails."""
+
+    name = "chain"
+
+    def __init__(self, parts: Sequence[Recovery]) -> None:
+        super().__init__({})
+        self.parts = list(parts)
+        self._i = 0
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        self._i = 0
+        self.parts[0].start(w, memory)
+
+    def act(self, w: Window) -> np.ndarray | None:
+        while self._i < len(self.parts):
+            part = self.parts[self._i]
+            action = part.act(w)
+            if action is not None:
+                return action
+            if part.status == FAILED:
+                self._finish(FAILED, f"{part.name}: {part.reason}")
+                return None
+            self._i += 1
+            if self._i < len(self.parts):
+                self.parts[self._i].start(w, self.memory)
+        self._finish(DONE)
+        return None
+
+
+def _f(default: float, low: float, high: float, doc: str) -> Param:
+    return Param(default, low, high, "float", doc)
+
+
+def _i(default: int, low: int, high: int, doc: str) -> Param:
+    return Param(default, low, high, "int", doc)
+
+
+_RESTAGE = {
+    "rise": _f(0.08, 0.0, 0.3, "height (m) over the object's top to rise to"),
+    "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as open"),
+    "tolerance": _f(0.01, 0.001, 0.05, "position tolerance (m)"),
+    "max_action": _f(1.0, 0.05, 1.0, "largest translational action"),
+}
+_PREGRASP = {
+    "hover": _f(0.06, 0.0, 0.3, "height (m) over the grip point"),
+    "tolerance": _f(0.01, 0.001, 0.05, "position tolerance (m)"),
+    "angle_tolerance": _f(0.15, 0.01, 1.0, "orientation tolerance (rad)"),
+    "margin": _f(0.01, 0.0, 0.1, "obstacle growth (m) in the collision check"),
+    "clearance": _f(0.06, 0.0, 0.3, "height (m) over a crossed obstacle"),
+    "equivalence": _f(0.008, 0.001, 0.05, "grip points closer than this (m) are the same grasp"),
+    "max_width": _f(0.07, 0.02, 0.08, "widest object extent (m) across the fingers"),
+    "max_action": _f(1.0, 0.05, 1.0, "largest translational action"),
+}
+
+#: Name -> recovery template with its parameter schema (the evolver's search space).
+RECOVERIES: dict[str, RecoverySpec] = {
+    s.name: s
+    for s in (
+        RecoverySpec("freeze", Freeze, {"steps": _i(5, 1, 100, "steps to hold still")}, Freeze.__doc__ or ""),
+        RecoverySpec("release_and_restage", ReleaseAndRestage, _RESTAGE, ReleaseAndRestage.__doc__ or ""),
+        RecoverySpec("pregrasp", Pregrasp, _PREGRASP, Pregrasp.__doc__ or ""),
+        RecoverySpec("regrasp", Regrasp, {
+            **_RESTAGE, **_PREGRASP,
+            "max_attempts": _i(3, 1, 10, "grasp attempts per intervention"),
+            "close_steps": _i(10, 1, 50, "steps the gripper closes before the grasp is judged"),
+            "lift": _f(0.04, 0.0, 0.2, "lift (m) over which the grasp must hold"),
+            "stall_steps": _i(15, 3, 100, "steps without motion after which a phase counts as blocked"),
+            "stall_motion": _f(0.004, 0.0, 0.05, "hand travel (m) under which it has not moved"),
+            "carry_max_action": _f(0.5, 0.05, 1.0, "largest translational action while holding"),
+        }, Regrasp.__doc__ or ""),
+        RecoverySpec("fine_alignment", FineAlignment, {
+            "clearance": _f(0.04, 0.0, 0.2, "height (m) of the object bottom over the target top"),
+            "tolerance": _f(0.01, 0.001, 0.05, "horizontal tolerance (m)"),
+            "z_tolerance": _f(0.015, 0.001, 0.05, "vertical tolerance (m)"),
+            "gain": _f(10.0, 1.0, 30.0, "action per metre of error"),
+            "max_action": _f(0.4, 0.05, 1.0, "largest translational action"),
+            "lost_steps": _i(3, 1, 20, "frames without the grasp before alignment gives up"),
+        }, FineAlignment.__doc__ or ""),
+        RecoverySpec("lower_until_supported_then_release", LowerUntilSupportedThenRelease, {
+            "speed": _f(0.25, 0.05, 1.0, "largest downward action"),
+            "gap": _f(0.005, 0.0, 0.05, "object bottom over the target's floor (m) that counts as supported"),
+            "stall_steps": _i(6, 2, 50, "steps over which a stalled object counts as supported"),
+            "stall_motion": _f(0.003, 0.0, 0.02, "object travel (m) under which it has stalled"),
+            "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as released"),
+            "release_steps": _i(15, 1, 60, "most steps spent opening"),
+        }, LowerUntilSupportedThenRelease.__doc__ or ""),
+        RecoverySpec("retreat_until_separated", RetreatUntilSeparated, {
+            "distance": _f(0.06, 0.0, 0.3, "grip site to object box (m) that counts as separated"),
+            "max_action": _f(0.5, 0.05, 1.0, "largest translational action"),
+        }, RetreatUntilSeparated.__doc__ or ""),
+    )
+}

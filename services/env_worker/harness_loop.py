@@ -1,0 +1,231 @@
+"""The critic-governed action loop of an env worker: a harness over a slot's episodes.
+
+A reset whose ResetSpec names a harness (``harness``: a registry reference fetched from the
+critic service; ``harness_dir``: a package directory on this worker) binds a
+:class:`SlotHarness` to the slot. From then on every executed action goes through it: the critics
+run on every env step (inside the chunk, at action frequency), and while a recovery has control
+its actions replace the policy's until the re-entry contract hands control back. When control
+comes back in the middle of a chunk the rest of that chunk is dropped (it was planned before the
+recovery moved the robot) and the policy is asked again. A slot without a harness never enters
+this module: its step path is unchanged.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import grpc
+import numpy as np
+
+from services.common import grpc_errors as ge
+from services.critic.package import format as fmt
+from services.critic.package.errors import PackageRejected
+from services.critic.package.loader import load_files, unload
+from services.critic.package.model import LoadedPackage
+from services.critic.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
+from services.critic.runtime.orchestrator import POLICY
+from zetta.v1 import types_pb2
+
+#: A registry reference that names one immutable version (cacheable for the worker's life).
+_EXACT_REF = re.compile(r"^[^@]+@\d+$")
+#: Chunk length run by a recovery when the policy is not asked (no execute_steps given).
+RECOVERY_CHUNK = 8
+
+
+class HarnessSource:
+    """Loads harness packages for resets: from directories, or from the critic service's registry.
+
+    Loaded packages are cached by content hash and manifest (a directory is re-read at each reset,
+    so an edit takes effect on the next episode; an exact registry version is fetched once).
+    """
+
+    def __init__(self, critic_address: str = "", timeout_s: float = 10.0, max_cached: int = 32) -> None:
+        self.critic_address = critic_address
+        self.timeout_s = timeout_s
+        #: Loaded versions kept, least recently used first out (an evolver tries many versions).
+        self.max_cached = max_cached
+        self._by_hash: OrderedDict[tuple[str, bytes], LoadedPackage] = OrderedDict()
+        self._by_ref: dict[str, LoadedPackage] = {}
+        self._lock = threading.Lock()
+        self._stub: Any = None
+
+    def load(self, spec: types_pb2.ResetSpec, session_id: str) -> LoadedPackage | None:
+        """The package the reset asks for, None when it asks for none."""
+        if spec.harness and spec.harness_dir:
+            raise ge.invalid(f"reset of session {session_id}: set harness or harness_dir, not both", [session_id])
+        try:
+            if spec.harness_dir:
+                return self._from_dir(spec.harness_dir, session_id)
+            if spec.harness:
+                return self._from_registry(spec.harness, session_id)
+        except PackageRejected as exc:
+            raise ge.invalid(f"reset of session {session_id}: {exc}", [session_id]) from None
+        return None
+
+    def _cached(self, files: Mapping[str, bytes]) -> LoadedPackage:
+        # The same content published (with a manifest: a version) and in a directory (none) are
+        # two packages to the report, so the manifest is part of the key.
+        key = (fmt.content_hash(files), files.get(fmt.MANIFEST, b""))
+        with self._lock:
+            package = self._by_hash.get(key)
+            if package is not None:
+                self._by_hash.move_to_end(key)
+                return package
+        package = load_files(files)
+        with self._lock:
+            self._by_hash[key] = package
+            while len(self._by_hash) > self.max_cached:
+                _, old = self._by_hash.popitem(last=False)
+                self._by_ref = {r: p for r, p in self._by_ref.items() if p is not old}
+                unload(old)  # runtimes already built from it keep its modules alive
+        return package
+
+    def _from_dir(self, path: str, session_id: str) -> LoadedPackage:
+        root = Path(path)
+        if not root.is_dir():
+            raise ge.invalid(f"reset of session {session_id}: harness_dir {path!r} is not a directory on this worker",
+                             [session_id])
+        return self._cached(fmt.read_tree(root))
+
+    def _from_registry(self, ref: str, session_id: str) -> LoadedPackage:
+        if not self.critic_address:
+            raise ge.failed_precondition(
+                f"reset of session {session_id} names harness {ref!r} but this env worker has no ZETTA_CRITIC_ADDR",
+                [session_id],
+            )
+        with self._lock:
+            hit = self._by_ref.get(ref)
+        if hit is not None:
+            return hit
+        from zetta.v1 import critic_pb2, critic_pb2_grpc
+
+        if self._stub is None:
+            self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(grpc.insecure_channel(self.critic_address))
+        try:
+            resp = self._stub.Get(critic_pb2.GetRequest(ref=ref), timeout=self.timeout_s)
+        except grpc.RpcError as exc:
+            code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNAVAILABLE
+            raise ge.ServiceError(code, f"harness {ref!r} from the critic service: {exc.details()}",
+                                  [session_id]) from None
+        package = self._cached(dict(resp.files))
+        if _EXACT_REF.match(ref):
+            with self._lock:
+                self._by_ref[ref] = package
+        return package
+
+
+def milestone_set(obs: Mapping[str, np.ndarray], names: Sequence[str]) -> frozenset[str]:
+    """Names of the milestones reached so far, from the ``milestones_reached`` tensor."""
+    reached = obs.get("milestones_reached")
+    if reached is None or not names:
+        return frozenset()
+    return frozenset(n for n, v in zip(names, reached) if v > 0.5)
+
+
+class SlotHarness:
+    """A harness runtime bound to one slot, with the bookkeeping of the episode in progress."""
+
+    def __init__(self, package: LoadedPackage) -> None:
+        try:
+            self.runtime = HarnessRuntime(package)
+        except HarnessError as exc:
+            raise ge.invalid(f"harness {package.name}: {exc}") from None
+        self.package = package
+        self.names: tuple[str, ...] = ()
+        self.decision = Decision(POLICY, (), None, "")
+        self.finished: EpisodeReport | None = None
+
+    def reset(self, obs: Mapping[str, np.ndarray], instruction: str, milestone_names: Sequence[str]) -> None:
+        """A new episode: fresh runtime state, critics run on the reset observation."""
+        self.names = tuple(milestone_names)
+        self.finished = None
+        self.runtime.start(instruction, self.names)
+        self.decision = self.runtime.step(obs, None, milestone_set(obs, self.names))
+
+    @property
+    def in_recovery(self) -> bool:
+        """A recovery has control: the next actions are its own, the policy need not be asked."""
+        return self.decision.action is not None
+
+    def run_chunk(self, env: Any, chunk: np.ndarray, max_steps: int, step_hist: Any) -> tuple[Any, np.ndarray, float, int]:
+        """Execute up to ``len(chunk)`` actions, each the recovery's when one has control.
+
+        Returns the last outcome, the actions actually executed ([n, dim]), the summed reward and
+        how many of them a recovery chose. Stops early at the end of the episode and when a
+        recovery hands control back (the rest of the policy's chunk is stale).
+        """
+        self.runtime.action_shape = tuple(chunk.shape[1:])
+        executed: list[np.ndarray] = []
+        reward, by_recovery = 0.0, 0
+        outcome = None
+        last = len(chunk) - 1
+        for i, planned in enumerate(chunk):
+            recovering = self.decision.action is not None
+            action = self.decision.action.astype(chunk.dtype) if recovering else planned
+            by_recovery += recovering
+            start = time.perf_counter()
+            outcome = env.step(action, render=i == last)
+            step_hist.observe(time.perf_counter() - start)
+            reward += outcome.reward
+            executed.append(action)
+            self.decision = self.runtime.step(outcome.observation, action, milestone_set(outcome.observation, self.names))
+            if outcome.terminated or outcome.truncated or env.episode_step >= max_steps:
+                break
+            if recovering and self.decision.action is None:
+                break
+        assert outcome is not None
+        return outcome, np.stack(executed), reward, by_recovery
+
+    def annotate(self, result: types_pb2.StepResult, recovery_actions: int, ended: bool, success: bool) -> None:
+        """Fill a StepResult's harness fields; the episode's report on the result that ended it."""
+        result.harness_mode = self.decision.mode
+        result.harness_intervention = self.decision.intervention_id
+        result.recovery_actions = recovery_actions
+        if ended:
+            self.finished = self.runtime.finish(success)
+            report_to_proto(self.finished, result.harness_report)
+
+    def report(self) -> types_pb2.HarnessReport:
+        """The episode's report so far (final once the episode ended)."""
+        out = types_pb2.HarnessReport()
+        report_to_proto(self.finished or self.runtime.report, out)
+        return out
+
+
+def report_to_proto(report: EpisodeReport, out: types_pb2.HarnessReport) -> None:
+    """Write an EpisodeReport into its proto message."""
+    out.harness, out.version, out.content_hash = report.harness, report.version, report.content_hash
+    out.policy_actions, out.recovery_actions = report.policy_actions, report.recovery_actions
+    for mode, n in report.actions_by_mode.items():
+        out.actions_by_mode[mode] = n
+    for iv in report.interventions:
+        out.interventions.add(
+            id=iv.id, kind=iv.kind, proposer=iv.proposer, evidence=iv.evidence, details=iv.details,
+            decision=iv.decision, start_step=iv.start_step, end_step=iv.end_step, outcome=iv.outcome,
+            actions=iv.actions,
+        )
+    for kind, n in report.interventions_by_kind.items():
+        out.interventions_by_kind[kind] = n
+    for d in report.disabled_critics:
+        out.disabled_critics.add(name=d.name, step=d.step, reason=d.reason)
+    out.proposals, out.rejected = report.proposals, report.rejected
+
+
+def bind(current: SlotHarness | None, package: LoadedPackage | None) -> SlotHarness | None:
+    """The slot's harness for the next episode: reuse the runtime when the package is unchanged."""
+    if package is None:
+        return None
+    if current is not None and current.package is package:  # HarnessSource returns one object per version
+        return current
+    return SlotHarness(package)
+
+
+def placeholder_chunk(length: int, dim: int, dtype: np.dtype) -> np.ndarray:
+    """The chunk a recovery runs instead of asking the policy (its entries are never executed)."""
+    return np.zeros((max(1, length), dim), dtype=dtype)

@@ -1,0 +1,86 @@
+"""Phase III gates: historical regression on the cluster, then held-out success over the current one.
+
+A consolidated candidate is admitted only if (1) it solves at least ``regression_min`` of the
+cluster's seeds (the paper asks for all of them: 1.0) and (2) its held-out success is strictly
+higher than the current harness's on the same held-out seeds. Anything else goes to the buffer of
+rejected candidates (the store's ``rejected`` table) and is never evaluated again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from services.evolver.store import Rollout
+from zetta.stats import wilson
+
+
+@dataclass(frozen=True)
+class GateParams:
+    """Thresholds of the two gates."""
+
+    regression_min: float = 1.0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Why a candidate was admitted or refused, with the numbers."""
+
+    admitted: bool
+    reason: str
+    regression: tuple[int, int]
+    heldout: tuple[int, int]
+    current: tuple[int, int]
+    bare: tuple[int, int]
+
+    @property
+    def delta_over_bare(self) -> float:
+        """Delta SR = SR(held-out | candidate) - SR(held-out | bare policy)."""
+        return _rate(self.heldout) - _rate(self.bare)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form with Wilson intervals."""
+        def block(x: tuple[int, int]) -> dict[str, Any]:
+            lo, hi = wilson(*x)
+            return {"successes": x[0], "episodes": x[1], "rate": _rate(x), "wilson95": [lo, hi]}
+
+        return {"admitted": self.admitted, "reason": self.reason, "regression": block(self.regression),
+                "heldout": block(self.heldout), "current": block(self.current), "bare": block(self.bare),
+                "delta_over_bare": self.delta_over_bare}
+
+
+def _rate(x: tuple[int, int]) -> float:
+    return x[0] / x[1] if x[1] else 0.0
+
+
+def count(rollouts: Sequence[Rollout]) -> tuple[int, int]:
+    """(successes, episodes)."""
+    return sum(r.success for r in rollouts), len(rollouts)
+
+
+def regression_gate(regression: Sequence[Rollout], params: GateParams = GateParams()) -> str | None:
+    """Why the candidate fails historical regression, or None when it passes."""
+    s, n = count(regression)
+    if n == 0:
+        return "no cluster seed to regress on"
+    if s / n < params.regression_min:
+        return f"historical regression {s}/{n} below {params.regression_min:.0%} of the cluster"
+    return None
+
+
+def judge(regression: Sequence[Rollout], heldout: Sequence[Rollout], current: Sequence[Rollout],
+          bare: Sequence[Rollout], params: GateParams = GateParams()) -> Verdict:
+    """Both gates; held-out rollouts of candidate, current and bare must be on the same seeds."""
+    seeds = sorted(r.seed for r in heldout)
+    if seeds != sorted(r.seed for r in current) or seeds != sorted(r.seed for r in bare):
+        raise ValueError("held-out comparison on different seeds: candidate, current and bare must share them")
+    reg, held, cur, base = count(regression), count(heldout), count(current), count(bare)
+    why = regression_gate(regression, params)
+    if why is not None:
+        return Verdict(False, why, reg, held, cur, base)
+    if held[0] <= cur[0]:
+        return Verdict(False, f"held-out {held[0]}/{held[1]} is not a strict improvement over the current "
+                              f"harness's {cur[0]}/{cur[1]}", reg, held, cur, base)
+    return Verdict(True, f"held-out {held[0]}/{held[1]} > current {cur[0]}/{cur[1]}; regression {reg[0]}/{reg[1]}",
+                   reg, held, cur, base)

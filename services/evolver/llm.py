@@ -1,0 +1,128 @@
+"""Optional LLM backend for repair: an OpenAI-compatible chat-completions endpoint proposes patches.
+
+The model sees the repair spec, the parent harness and the library's templates with their
+parameter ranges, and answers with JSON patches. A proposal is only a proposal: it becomes a
+candidate after the same checks as the offline search (templates exist, parameters in range,
+bounded edit, the critic fires near t_EOD on a diagnostic replay), then faces the same validation
+and gates. The offline search never depends on it.
+"""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from services.evolver.diagnose import RepairSpec
+from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
+from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, library, score_critic,
+                                     stage_of)
+from services.evolver.trace import Trace
+
+
+class LLMError(RuntimeError):
+    """The endpoint could not be reached or answered something that is not a patch list."""
+
+
+@dataclass(frozen=True)
+class LLMConfig:
+    """Where the endpoint is (base URL up to /v1), which model, the key (may be empty), a timeout."""
+
+    base_url: str
+    model: str
+    api_key: str = ""
+    timeout_s: float = 60.0
+
+
+def _prompt(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any], recs: Mapping[str, Any]) -> str:
+    def schema(entries: Mapping[str, Any]) -> dict[str, Any]:
+        return {n: {k: [p.low, p.high, p.default] for k, p in e.params.items()} for n, e in entries.items()}
+
+    return json.dumps({
+        "task": "Propose up to 3 minimal harness patches for this failure cluster. Answer with only a JSON "
+                "object {\"patches\": [{\"critic\": {\"template\": str, \"params\": {}}, \"recovery\": "
+                "{\"template\": str, \"args\": {}}}]}. Templates and parameter ranges [low, high, default] below.",
+        "repair_spec": spec.to_dict(),
+        "parent_critics": {k: {"template": c.template, "params": dict(c.params), "recovery": c.mode}
+                           for k, c in parent.critics.items()},
+        "predicates": schema(preds), "recoveries": schema(recs),
+    })
+
+
+def ask(cfg: LLMConfig, content: str) -> str:
+    """One chat completion; returns the assistant message text."""
+    body = json.dumps({"model": cfg.model, "temperature": 0,
+                       "messages": [{"role": "system", "content": "You repair robot harnesses. Reply with JSON only."},
+                                    {"role": "user", "content": content}]}).encode()
+    req = urllib.request.Request(cfg.base_url.rstrip("/") + "/chat/completions", data=body, method="POST",
+                                 headers={"Content-Type": "application/json",
+                                          **({"Authorization": f"Bearer {cfg.api_key}"} if cfg.api_key else {})})
+    try:
+        with urllib.request.urlopen(req, timeout=cfg.timeout_s) as resp:
+            answer = json.loads(resp.read())
+        return str(answer["choices"][0]["message"]["content"])
+    except (urllib.error.URLError, OSError, KeyError, IndexError, ValueError) as exc:
+        raise LLMError(f"{cfg.base_url}: no usable completion: {exc}") from None
+
+
+def parse_patches(text: str) -> list[dict[str, Any]]:
+    """The patch list in a reply (tolerates a fenced code block around the JSON)."""
+    start, end = text.find("{"), text.rfind("}")
+    if start < 0 or end <= start:
+        raise LLMError("the reply holds no JSON object")
+    try:
+        patches = json.loads(text[start:end + 1]).get("patches")
+    except (json.JSONDecodeError, AttributeError) as exc:
+        raise LLMError(f"the reply is not a JSON patch object: {exc}") from None
+    if not isinstance(patches, list):
+        raise LLMError("the reply has no 'patches' list")
+    return [p for p in patches if isinstance(p, dict)]
+
+
+def propose(cfg: LLMConfig, spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
+            successes: Sequence[Trace], params: SearchParams = SearchParams(),
+            max_edits: int = 3) -> tuple[list[Candidate], list[str]]:
+    """Candidates from the LLM that pass every offline check, and the reasons others were refused."""
+    preds, recs = library()
+    accepted: list[Candidate] = []
+    refused: list[str] = []
+    for p in parse_patches(ask(cfg, _prompt(spec, parent, preds, recs))):
+        cand, why = _candidate(p, spec, parent, medoid, members, successes, params, max_edits)
+        if cand is not None:
+            accepted.append(cand)
+        else:
+            refused.append(why)
+    return accepted, refused
+
+
+def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase,
+               members: Sequence[ReplayCase], successes: Sequence[Trace], params: SearchParams,
+               max_edits: int) -> tuple[Candidate | None, str]:
+    """The candidate an LLM patch makes, or None and why it was refused (the search's own checks)."""
+    from services.critic.runtime.library.schema import resolve
+
+    preds, _ = library()
+    try:
+        template = str(patch["critic"]["template"])
+        setting = {str(k): v for k, v in dict(patch["critic"].get("params", {})).items()}
+        recovery = str(patch["recovery"]["template"])
+        args = {str(k): v for k, v in dict(patch["recovery"].get("args", {})).items()}
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        return None, f"malformed patch {dict(patch)!r}: {exc}"
+    plan = PlanDraft(recovery, args)
+    critic = CriticDraft(template, setting, evidence=template, mode=recovery, missing=stage_of(spec.m_star))
+    why = check_patch(parent, Candidate(f"c_{template}", critic, plan, -1, 0.0, 0.0, 0, source="llm"), max_edits)
+    if why is not None:
+        return None, why
+    full = resolve(preds[template].params, setting, template)
+    res = score_critic(preds[template].fn, full, medoid, members, successes, params.window)
+    if res is None:
+        return None, f"{template} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
+    if res[2] > params.max_false_positive:
+        return None, f"{template} fires on {res[2]:.0%} of successful rollouts"
+    critic = CriticDraft(template, full, evidence=template, mode=recovery, missing=stage_of(spec.m_star))
+    edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
+    return Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits, source="llm"), ""

@@ -1,0 +1,248 @@
+"""Offline repair: search typed library templates and bounded parameter edits for a patch.
+
+For a repair spec (diagnose.RepairSpec) the search proposes patches {C*, R*}: a critic built from a
+library predicate template, with at most ``max_param_edits`` parameters moved off their defaults
+by one grid step inside the template's declared range, paired with a library recovery that handles
+that evidence. A critic qualifies only if a diagnostic replay shows it fires within ``window``
+steps of t_EOD on the medoid; candidates are ranked by how many cluster members it also catches
+near their t_EOD, then by how rarely it fires on successful rollouts (false positives), then by
+closeness to t_EOD, then by edit size. The search is deterministic and needs no network; an
+LLM backend (llm.py) may add candidates, which then face exactly the same checks.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from services.evolver.diagnose import RepairSpec
+from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
+from services.evolver.replay import first_fire
+from services.evolver.trace import Trace
+
+#: Which recoveries are worth pairing with which evidence: a typed compatibility table over the
+#: library's names ("a+b" is a playbook that runs a, then b); entries whose parts are missing from
+#: the installed library are skipped. Evidence with no row may pair with any recovery.
+COMPATIBLE: dict[str, tuple[str, ...]] = {
+    "grasp_lost": ("regrasp", "release_and_restage"),
+    "failed_acquisition": ("regrasp", "release_and_restage"),
+    "non_approach": ("pregrasp+regrasp", "pregrasp", "regrasp"),
+    "approach_wrong_object": ("pregrasp", "retreat_until_separated"),
+    "stalled_progress": ("pregrasp+regrasp", "release_and_restage", "fine_alignment"),
+    "drift": ("regrasp", "release_and_restage"),
+    "held_near_target": ("lower_until_supported_then_release", "fine_alignment"),
+    "held_stalled_transport": ("fine_alignment+lower_until_supported_then_release", "fine_alignment"),
+    "blocked_motion": ("retreat_until_separated", "fine_alignment", "release_and_restage"),
+}
+#: Predicates that state a healthy condition (used by re-entry and gating), never failure evidence.
+NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})
+
+
+class LibraryUnavailable(RuntimeError):
+    """The harness library (services/critic/runtime/library) is not importable."""
+
+
+def library() -> tuple[Mapping[str, Any], Mapping[str, Any]]:
+    """The installed library's (PREDICATES, RECOVERIES) registries."""
+    try:
+        from services.critic.runtime import library as lib
+    except ImportError as exc:
+        raise LibraryUnavailable(f"the harness library cannot be imported: {exc}") from None
+    preds = getattr(lib, "PREDICATES", None)
+    recs = getattr(lib, "RECOVERIES", None)
+    if preds is None:
+        from services.critic.runtime.library.predicates import PREDICATES as preds
+    if recs is None:
+        try:
+            from services.critic.runtime.library.recoveries import RECOVERIES as recs
+        except ImportError as exc:
+            raise LibraryUnavailable(f"the harness library has no recoveries registry: {exc}") from None
+    return preds, recs
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """Bounds of the search."""
+
+    window: int = 40
+    max_param_edits: int = 1
+    grid_fraction: float = 0.25
+    max_false_positive: float = 0.2
+    max_candidates: int = 4
+
+
+def param_grid(schema: Mapping[str, Any], max_edits: int, fraction: float) -> list[dict[str, float]]:
+    """Defaults, then every setting that moves at most ``max_edits`` parameters one step up or down,
+    clipped to the range: a step is ``fraction`` of the default (of a quarter of the range for a
+    zero default), so an edit stays near what the template's author calibrated. Bounded edits by
+    construction."""
+    defaults = {k: (int(p.default) if p.kind == "int" else float(p.default)) for k, p in schema.items()}
+    out = [defaults]
+    for names in itertools.chain.from_iterable(itertools.combinations(sorted(schema), r)
+                                               for r in range(1, max_edits + 1)):
+        for signs in itertools.product((-1, 1), repeat=len(names)):
+            cand = dict(defaults)
+            for name, sign in zip(names, signs):
+                p = schema[name]
+                step = fraction * (abs(p.default) or (p.high - p.low) / 4)
+                v = min(p.high, max(p.low, p.default + sign * step))
+                cand[name] = int(round(v)) if p.kind == "int" else round(float(v), 6)
+            if cand not in out:
+                out.append(cand)
+    return out
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A patch with the replay evidence that made it a candidate."""
+
+    critic_name: str
+    critic: CriticDraft
+    plan: PlanDraft
+    fire_step: int
+    coverage: float
+    false_positive: float
+    edits: int
+    source: str = "search"
+
+    def apply(self, parent: HarnessDraft) -> HarnessDraft:
+        """The parent harness with this patch."""
+        return parent.with_patch({self.critic_name: self.critic}, {self.critic.evidence: self.plan})
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form for manifests and reports."""
+        return {"critic": self.critic_name, "template": self.critic.template, "params": dict(self.critic.params),
+                "recovery": self.plan.recovery, "args": dict(self.plan.args), "fire_step": self.fire_step,
+                "coverage": self.coverage, "false_positive": self.false_positive, "edits": self.edits,
+                "source": self.source}
+
+
+@dataclass(frozen=True)
+class ReplayCase:
+    """A failure to replay: its trace and t_EOD step."""
+
+    trace: Trace
+    t_eod: int
+
+
+def score_critic(fn: Any, params: Mapping[str, float], medoid: ReplayCase,
+                 members: Sequence[ReplayCase], successes: Sequence[Trace], window: int) -> tuple[int, float, float] | None:
+    """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD."""
+    fire = first_fire(medoid.trace, fn, params)
+    if fire is None or abs(fire - medoid.t_eod) > window:
+        return None
+    caught = sum(1 for m in members if (s := first_fire(m.trace, fn, params)) is not None and abs(s - m.t_eod) <= window)
+    fp = sum(1 for t in successes if first_fire(t, fn, params) is not None)
+    return fire, (1 + caught) / (1 + len(members)), fp / len(successes) if successes else 0.0
+
+
+def recoveries_for(evidence: str, recoveries: Mapping[str, Any]) -> list[str]:
+    """Library recoveries compatible with an evidence kind, in preference order."""
+    preferred = [r for r in COMPATIBLE.get(evidence, ()) if all(part in recoveries for part in r.split("+"))]
+    return preferred or ([] if evidence in COMPATIBLE else sorted(recoveries))
+
+
+def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
+           successes: Sequence[Trace], params: SearchParams = SearchParams(),
+           rejected: Callable[[str], bool] | None = None) -> list[Candidate]:
+    """Ranked candidate patches for a repairable spec (empty when nothing qualifies).
+
+    ``rejected(fingerprint) -> bool`` filters candidates whose resulting harness was rejected
+    before, so no candidate is ever evaluated twice."""
+    if not spec.repairable:
+        return []
+    preds, recs = library()
+    templates = _templates_for(spec, parent, preds)
+    scored: list[Candidate] = []
+    for template in templates:
+        ps = preds[template]
+        base = parent.critics.get(f"c_{template}")
+        for setting in param_grid(ps.params, params.max_param_edits, params.grid_fraction):
+            if base is not None and dict(base.params) == setting:
+                continue
+            res = score_critic(ps.fn, setting, medoid, members, successes, params.window)
+            if res is None or res[2] > params.max_false_positive:
+                continue
+            for recovery in recoveries_for(template, recs)[:2]:
+                critic = CriticDraft(template, setting, evidence=template, mode=recovery,
+                                     missing=stage_of(spec.m_star))
+                plan = PlanDraft(recovery)
+                edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
+                cand = Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits)
+                if rejected is not None and rejected(cand.apply(parent).fingerprint()):
+                    continue
+                if build_error(cand.apply(parent)) is not None:
+                    continue
+                scored.append(cand)
+    scored.sort(key=lambda c: (-c.coverage, c.false_positive, abs(c.fire_step - medoid.t_eod), c.edits,
+                               c.critic.template, c.plan.recovery))
+    return scored[: params.max_candidates]
+
+
+def stage_of(m_star: str) -> tuple[str, ...]:
+    """The kind of the cluster's first missing milestone ("on(a,b)" -> ("on",)): the orchestrator
+    grants the recovery only while that kind of milestone is the one missing, a task-independent
+    condition that transfers to other tasks."""
+    from services.critic.runtime.orchestrator import milestone_kind
+
+    return (milestone_kind(m_star),) if m_star and m_star != "<none>" else ()
+
+
+def _templates_for(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any]) -> list[str]:
+    """Which predicate templates the layer allows: new detectors for a critic/plan failure, the
+    parent's own critics (re-parameterized or re-paired) for a recovery/param failure."""
+    evidence = sorted(t for t in preds if t not in NOT_EVIDENCE)
+    if spec.layer == "critic":
+        near = [t for t in spec.detect_near if t in evidence]
+        return near + [t for t in evidence if t not in near]
+    if spec.layer == "plan":
+        return [t for t in ("blocked_motion", "stalled_progress") if t in preds]
+    if spec.layer in ("recovery", "param"):
+        return sorted({c.template for c in parent.critics.values() if c.template in preds}) or evidence
+    return []
+
+
+def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | None:
+    """Why a patch (from the search or an LLM) is refused, or None: the templates exist, the
+    parameters are in range, the patch is bounded."""
+    from services.critic.runtime.library.schema import ParamError, resolve
+
+    preds, recs = library()
+    if cand.critic.template not in preds:
+        return f"unknown predicate template {cand.critic.template!r}"
+    parts = cand.plan.recovery.split("+")
+    unknown = [p for p in parts if p not in recs]
+    if unknown:
+        return f"unknown recovery template {unknown[0]!r}"
+    try:
+        resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
+        for part in parts:
+            args = cand.plan.args.get(part, {}) if len(parts) > 1 else cand.plan.args
+            resolve(recs[part].params, args, part)  # type: ignore[arg-type]
+    except ParamError as exc:
+        return str(exc)
+    edits = cand.apply(parent).edits_from(parent)
+    if edits > max_edits:
+        return f"patch changes {edits} critics/plans/parameters; at most {max_edits} allowed"
+    return build_error(cand.apply(parent))
+
+
+def build_error(draft: HarnessDraft) -> str | None:
+    """Why the draft's package would not load or build a runtime (the critic service's own checks), or None."""
+    from services.critic.package.errors import PackageRejected
+    from services.critic.package.loader import load_files, unload
+    from services.critic.runtime.engine import HarnessError, HarnessRuntime
+
+    try:
+        pkg = load_files(render(draft))
+    except PackageRejected as exc:
+        return f"package rejected: {exc}"
+    try:
+        HarnessRuntime(pkg)
+    except HarnessError as exc:
+        return f"harness does not build: {exc}"
+    finally:
+        unload(pkg)
+    return None

@@ -1,0 +1,92 @@
+"""Where the evolver's rollouts run: a stack that is already up, or a local one it starts and stops.
+
+The local stack is the real one (zetta.local_stack.LocalStack): Redis, gateway, critic service
+(harness registry), one policy worker serving the frozen policy and N env workers that load
+harness versions from the critic service. Env workers are started after the critic service so
+they can be given its address.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+@dataclass(frozen=True)
+class Endpoints:
+    """Addresses the evolver dials."""
+
+    gateway: str
+    registry: str
+
+
+@contextmanager
+def endpoints(gateway: str | None, registry: str | None, model: str, env_workers: int, slots: int,
+              workdir: Path, video: bool) -> Iterator[Endpoints]:
+    """The given addresses, or a local stack started for the duration of the block."""
+    if gateway:
+        if not registry:
+            raise SystemExit("--gateway needs --registry too (the critic service that serves harness versions)")
+        yield Endpoints(gateway, registry)
+        return
+    from zetta.local_stack import LocalStack
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    extra = {"ZETTA_TORCH_THREADS": "1", "ZETTA_LOG_LEVEL": "WARNING"}
+    if video:
+        extra["ZETTA_VIDEO_DIR"] = str(workdir / "videos")
+    stack = LocalStack(env_workers=0, slots=slots, policy_workers=1, families=("libero",), models=(model,),
+                       workdir=workdir, extra_env=extra, critic=True)
+    with stack:
+        stack.extra_env = {**extra, "ZETTA_CRITIC_ADDR": stack.critic_address}
+        for i in range(env_workers):
+            stack.start_env_worker(i)
+        stack.wait_workers(env_workers)
+        yield Endpoints(stack.gateway_address, stack.critic_address)
+
+
+@contextmanager
+def stop_on_sigterm() -> Iterator[None]:
+    """Within the block SIGTERM (kill, a scheduler) stops like Ctrl-C: KeyboardInterrupt unwinds the
+    command, so the local stack it started is stopped and nothing is left behind; finished rollouts
+    are filed. The previous handlers come back afterwards."""
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    signal.signal(signal.SIGTERM, interrupt)
+    if previous[signal.SIGINT] is signal.SIG_IGN:  # started in the background: honour SIGINT too
+        signal.signal(signal.SIGINT, interrupt)
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+class Bars:
+    """One tqdm bar per phase, closed when the next phase starts (``Evolution`` progress callback)."""
+
+    def __init__(self, disable: bool = False) -> None:
+        self.disable = disable
+        self._phase = ""
+        self._bar: tqdm | None = None
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        if phase != self._phase or self._bar is None:
+            self.close()
+            self._phase = phase
+            self._bar = tqdm(total=total, desc=phase, unit="ep", disable=self.disable, leave=True, dynamic_ncols=True)
+        self._bar.n = done
+        self._bar.refresh()
+
+    def close(self) -> None:
+        """Close the current bar."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

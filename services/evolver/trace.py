@@ -1,0 +1,134 @@
+"""One rollout's trace tau = {(s_t, a_t, mu_t, phi_t)} plus its interventions, as one compressed npz.
+
+Loop 1 of the paper keeps every valid rollout with its full trace; Loop 2 replays critics over
+it and measures its divergence from the successful ones. The trace is recorded at the policy's
+call rate: frame k is the observation after the k-th executed chunk (frame 0 after the reset),
+``frame_step[k]`` its env step, and ``actions`` holds every executed action with
+``action_frame[i]`` the frame it led to. Camera images are not stored here (the video has them).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+#: Observation tensors that are camera images: kept in the video, never in the trace.
+IMAGE_SUFFIX = "_image"
+#: Width of :func:`relative_state`.
+STATE_DIM = 9
+
+
+@dataclass
+class Trace:
+    """The arrays of one rollout; ``obs`` maps a tensor name to [K, ...] over the K frames."""
+
+    obs: dict[str, np.ndarray]
+    frame_step: np.ndarray
+    actions: np.ndarray
+    action_frame: np.ndarray
+    milestone_names: list[str]
+    interventions: list[dict[str, Any]] = field(default_factory=list)
+    #: Env steps whose action came from a recovery, not the policy (from the harness report).
+    recovery_steps: int = 0
+
+    @property
+    def frames(self) -> int:
+        """Number of recorded frames K."""
+        return int(len(self.frame_step))
+
+    @property
+    def mu(self) -> np.ndarray:
+        """mu_t: milestones that hold at each frame, [K, len(M)] booleans."""
+        m = self.obs.get("milestones")
+        if m is None:
+            return np.zeros((self.frames, len(self.milestone_names)), dtype=bool)
+        return m[:, : len(self.milestone_names)] > 0.5
+
+    @property
+    def mu_reached(self) -> np.ndarray:
+        """Milestones observed at some frame up to each frame, [K, len(M)] booleans."""
+        return np.maximum.accumulate(self.mu, axis=0) if self.frames else self.mu
+
+    @property
+    def phi(self) -> dict[str, np.ndarray]:
+        """phi_t: the physical signals, by name."""
+        return {k: v for k, v in self.obs.items() if k.startswith("phi_")}
+
+    def to_bytes(self) -> bytes:
+        """The compressed npz of this trace."""
+        arrays = {f"obs/{k}": v for k, v in self.obs.items()}
+        arrays.update(
+            frame_step=self.frame_step, actions=self.actions, action_frame=self.action_frame,
+            meta=np.frombuffer(json.dumps({"milestone_names": self.milestone_names, "interventions":
+                                           self.interventions, "recovery_steps": self.recovery_steps}).encode(),
+                               dtype=np.uint8),
+        )
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "Trace":
+        """Inverse of :meth:`to_bytes`."""
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            meta = json.loads(z["meta"].tobytes().decode())
+            obs = {k[4:]: z[k] for k in z.files if k.startswith("obs/")}
+            return cls(obs=obs, frame_step=z["frame_step"], actions=z["actions"], action_frame=z["action_frame"],
+                       milestone_names=list(meta["milestone_names"]), interventions=list(meta["interventions"]),
+                       recovery_steps=int(meta.get("recovery_steps", 0)))
+
+
+class TraceRecorder:
+    """Accumulates frames while an episode runs; one per episode."""
+
+    def __init__(self, milestone_names: Sequence[str]) -> None:
+        self.milestone_names = list(milestone_names)
+        self._obs: dict[str, list[np.ndarray]] = {}
+        self._steps: list[int] = []
+        self._actions: list[np.ndarray] = []
+        self._action_frame: list[int] = []
+        self.interventions: list[dict[str, Any]] = []
+        self.recovery_steps = 0
+
+    def frame(self, step: int, obs: Mapping[str, np.ndarray], executed: np.ndarray | None = None) -> None:
+        """Record the observation at env step ``step`` and the actions that led to it."""
+        k = len(self._steps)
+        if executed is not None and len(executed):
+            acts = np.asarray(executed, dtype=np.float32).reshape(len(executed), -1)
+            self._actions.append(acts)
+            self._action_frame.extend([k] * len(acts))
+        for name, value in obs.items():
+            if name.endswith(IMAGE_SUFFIX) or np.asarray(value).dtype == np.uint8:
+                continue
+            self._obs.setdefault(name, []).append(np.asarray(value))
+        self._steps.append(int(step))
+
+    def finish(self) -> Trace:
+        """The trace recorded so far."""
+        obs = {k: np.stack(v) for k, v in self._obs.items() if len(v) == len(self._steps)}
+        actions = np.concatenate(self._actions) if self._actions else np.zeros((0, 7), np.float32)
+        return Trace(obs=obs, frame_step=np.asarray(self._steps, dtype=np.int32), actions=actions,
+                     action_frame=np.asarray(self._action_frame, dtype=np.int32),
+                     milestone_names=self.milestone_names, interventions=list(self.interventions),
+                     recovery_steps=self.recovery_steps)
+
+
+def relative_state(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The object-relative state used by EOD and clustering, per frame ([K, STATE_DIM] for [K, ...] inputs):
+    gripper-to-object offset, object-to-target offset, grasp flag, gripper aperture, eef height.
+
+    Relative poses, not absolute ones, so that the same mechanism at a shifted layout (LIBERO-PRO
+    swap) lands near its reference."""
+    eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float32)
+    zeros3 = np.zeros_like(eef)
+    obj = np.asarray(obs.get("task_object_pos", zeros3), dtype=np.float32)
+    tgt = np.asarray(obs.get("task_target_pos", zeros3), dtype=np.float32)
+    one = eef[..., :1]
+    grasp = np.asarray(obs.get("phi_grasp", np.zeros_like(one)), dtype=np.float32)
+    aperture = np.asarray(obs.get("phi_gripper_aperture", np.zeros_like(one)), dtype=np.float32)
+    return np.concatenate([obj - eef, tgt - obj, grasp, aperture, eef[..., 2:3]], axis=-1)

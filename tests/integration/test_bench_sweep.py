@@ -1,0 +1,159 @@
+"""`zetta bench rollout` in small: every measuring piece once, then the report built from them.
+
+The default-suite smoke test drives the real pieces with tiny numbers (two sessions of the shared
+stack, 8-step episodes, one naive episode, a fraction of a second of the limit loop in this
+process) and renders the docs page into a temporary directory; the slow test runs the whole
+command line end to end with tiny settings. The full sweep is never part of a test run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import threading
+from pathlib import Path
+
+import pytest
+
+from zetta import bench_report
+from zetta import bench_sweep as bs
+from zetta.cli import main as zetta_main
+from zetta.local_stack import LocalStack
+
+SCRIPTED = "scripted-pick-place"  # the shared stack's policy worker serves it
+
+
+def test_cli_forwards_bench(capsys: pytest.CaptureFixture[str]) -> None:
+    assert zetta_main(["bench"]) == 2
+    assert "zetta bench rollout" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        zetta_main(["bench", "rollout", "--help"])
+    assert info.value.code == 0
+    assert "--max-steps" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        bs.parse_args(["--concurrency", "0"])
+
+
+async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path) -> None:
+    logs: list[str] = []
+    probe: dict[str, float] = {}
+    failures: list[str] = []
+    spec = bs.StackSpec("stack", env_workers=2, slots=4, model=SCRIPTED)
+    url = shared_stack.services["policy-0"].metrics_url
+    stack_rows = await bs._stack_points(shared_stack, spec, [1, 2], episodes=2, task=bs.DEFAULT_TASK, max_steps=8,
+                                        policy_url=url, log=logs.append, gateway_probe=probe, failures=failures)
+    assert failures == []
+    assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 2), ("stack", 2, 4)]
+    for row in stack_rows:
+        assert all(e.steps == 8 for e in row.episodes)  # the fixed budget, whatever the policy does
+        assert row.batch_mean is not None and row.batch_mean >= 1.0
+        assert row.usage is not None and row.usage.own_cpu_pct > 0 and row.usage.rss_mib > 100
+    assert probe["observe_p50_ms"] > 0
+
+    from services.policy_worker.models.base import load_model
+
+    rows: dict[str, bs.Row] = {}
+    bs.run_naive(rows, load_model(SCRIPTED), [0], bs.DEFAULT_TASK, 8, False, logs.append)
+    assert rows["naive"].steps == 8 and rows["naive"].wall_s > 0
+
+    out: queue.Queue[dict] = queue.Queue()
+    bs.limit_child("obs", bs.DEFAULT_TASK, 8, 0.2, 1, threading.Barrier(1), out)
+    result = out.get_nowait()
+    assert result["episodes"] and all(steps == 8 for steps, _ in result["episodes"])
+    limit = bs.Row("limit-obs", 1, [bs.Episode(i, False, s, t) for i, (s, t) in enumerate(result["episodes"])],
+                   result["end"] - result["start"])
+
+    res = bs.Results({"task": bs.DEFAULT_TASK, "max_steps": 8, "model": SCRIPTED}, bs.machine(), "now", 0.0,
+                     rows=[rows["naive"], limit, *stack_rows], inference_ms={1: 2.0, 8: 3.0}, policy_ops=100, chunk=1,
+                     gateway=probe)
+    table = bench_report.text_table(res)
+    assert table.count("\n") == 1 + len(res.rows)
+    page = tmp_path / "throughput.md"
+    page.write_text(f"# keep me\n\n{bench_report.BEGIN}\nold\n{bench_report.END}\n\n## also kept\n")
+    written = bench_report.write_docs(res, tmp_path, "zetta bench rollout --test")
+    text = page.read_text()
+    assert text.startswith("# keep me") and text.rstrip().endswith("## also kept") and "\nold\n" not in text
+    assert "| stack | 2 | 4 |" in text and "Scale-out model" in text
+    assert {p.name for p in written} == {"throughput.md", "throughput-episodes.png", "throughput-steps.png",
+                                         "throughput-latency.png"}
+    assert all(p.stat().st_size > 1000 for p in written)
+    json.dumps(res.to_json(), default=float)  # what --json writes
+
+
+def test_targets_judge_the_issue_thresholds() -> None:
+    def row(mode: str, c: int, n: int, wall: float, latency: float) -> bs.Row:
+        return bs.Row(mode, c, [bs.Episode(i, False, 100, latency) for i in range(n)], wall)
+
+    res = bs.Results({}, "m", "now", 0.0, rows=[
+        row("naive", 1, 2, 60.0, 30.0),                   # 2 episodes/min, 3.3 steps/s
+        row("limit", 2, 100, 10.0, 0.2),                  # 1000 steps/s
+        row("stack", 8, 100, 50.0, 4.0),                  # 120 episodes/min
+        row("stack", 16, 100, 40.0, 6.0),                 # 150 episodes/min = 75x naive, 250 steps/s
+        row("stack", 32, 100, 12.0, 7.9),                 # 833 steps/s = 83% of the limit
+    ])
+    met = {name: ok for name, _, ok in bench_report.targets(res)}
+    assert list(met.values()) == [True, True, True]
+    res.rows[-1].episodes = [bs.Episode(i, False, 100, 8.1) for i in range(100)]  # growth 2.03x
+    res.rows[-1].wall_s = 13.0  # 769 steps/s = 77%
+    assert [ok for _, _, ok in bench_report.targets(res)] == [True, False, False]
+
+
+@pytest.mark.slow
+def test_command_line_end_to_end(tmp_path: Path) -> None:
+    out = tmp_path / "run.json"
+    code = zetta_main(["bench", "rollout", "--concurrency", "1,2", "--baseline-concurrency", "2", "--episodes", "2",
+                       "--max-steps", "8", "--naive-episodes", "1", "--naive-fast-episodes", "1",
+                       "--limit-seconds", "0.5", "--json", str(out), "--write-docs", "--docs-dir", str(tmp_path)])
+    assert code == 0
+    data = json.loads(out.read_text())
+    modes = [(r["mode"], r["concurrency"]) for r in data["rows"]]
+    cores = os.cpu_count()
+    assert modes == [("naive", 1), ("naive-fast", 1), ("limit", cores), ("limit-obs", cores), ("stack", 1),
+                     ("stack", 2), ("stack-off", 2)]
+    assert (tmp_path / "throughput-latency.png").exists()
+
+
+@pytest.mark.parametrize("sharing", [True, False])
+async def test_resource_sharing_switch(sharing: bool) -> None:
+    """ZETTA_RESOURCE_SHARING=false (the stack-off baseline) gives every session a group of its own,
+    which is closed with the session; on, sessions of one config share one group."""
+    from google.protobuf import struct_pb2
+
+    from services.env_worker.config import EnvWorkerConfig
+    from services.env_worker.policy_client import PolicyClient
+    from services.env_worker.servicer import EnvWorkerServicer
+    from services.env_worker.slots import SlotTable
+    from zetta.v1 import env_worker_pb2
+
+    cfg = EnvWorkerConfig.from_env({"ZETTA_GATEWAY_ADDRESS": "g:1", "ZETTA_RESOURCE_SHARING": str(sharing).lower()})
+    assert cfg.resource_sharing is sharing
+    table = SlotTable(2, ("robosuite",))
+    servicer = EnvWorkerServicer(table, PolicyClient([], 1000), resource_sharing=cfg.resource_sharing)
+    config = struct_pb2.Struct()
+    config.update({"env_name": "Lift"})
+    try:
+        await servicer.OpenSlots(env_worker_pb2.OpenSlotsRequest(session_ids=["a", "b"], env_family="robosuite",
+                                                                 env_config=config), None)
+        a, b = table.get(["a", "b"])
+        assert (a.family is b.family) is sharing
+        stats = [a.family.sharing_stats(), b.family.sharing_stats()]
+        if sharing:
+            assert stats[0]["models_compiled"] == 1
+        else:
+            assert [s["models_compiled"] for s in stats] == [1, 1]
+        await servicer.CloseSlots(env_worker_pb2.CloseSlotsRequest(session_ids=["a", "b"]), None)
+        for s in (a, b):
+            s.executor.submit(lambda: None).result(timeout=60)  # the close ran on the slot's thread
+        assert (a.family.sharing_stats()["envs_idle"] == 2) is sharing  # off: its group was closed with it
+    finally:
+        table.shutdown()
+
+
+def test_resource_sharing_setting_fails_fast() -> None:
+    from services.common.config import ConfigError
+    from services.env_worker.config import EnvWorkerConfig
+
+    assert EnvWorkerConfig.from_env({"ZETTA_GATEWAY_ADDRESS": "g:1"}).resource_sharing is True
+    with pytest.raises(ConfigError, match="ZETTA_RESOURCE_SHARING"):
+        EnvWorkerConfig.from_env({"ZETTA_GATEWAY_ADDRESS": "g:1", "ZETTA_RESOURCE_SHARING": "maybe"})

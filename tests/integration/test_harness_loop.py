@@ -1,0 +1,163 @@
+"""The critic-governed action loop over the real stack (gateway -> env worker -> harness runtime).
+
+A small harness package written to a directory is named in the ResetSpec; the env worker loads
+it, runs its critics at every env step inside the executed chunks, lets the recovery's actions
+replace the client's or the policy's, and reports the mode per step and the interventions and
+action shares per episode.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import LIFT
+from zetta import Gateway
+from zetta.client import ZettaError
+from zetta.harness import HarnessRegistry
+from zetta.local_stack import LocalStack
+
+SKILL = """+++
+name = "loop-test"
+description = "freeze the arm from step 3 on; re-enter once still"
+
+[runtime]
+critic_budget_ms = 50.0
+critic_hard_limit_ms = 500.0
+
+[reentry]
+gamma = 0.0
+k = 1
+
+[[adjudication]]
+evidence = "late"
+mode = "hold"
+priority = 1
++++
+test harness
+"""
+
+CRITICS = '''
+from services.critic.runtime.api import Proposal
+
+
+def critic_late(window, params):
+    """Proposes a hold at step 3 of the episode."""
+    if window.now.step == int(params["at"]):
+        return Proposal("critics.late", "late", "hold", {"step": float(window.now.step)})
+    return None
+
+
+def critic_broken(window, params):
+    """Raises from step 2 on: switched off, the episode goes on."""
+    if window.now.step >= 2:
+        raise ValueError("broken critic")
+    return None
+'''
+
+PLANS = """
+[hold]
+recovery = "freeze"
+params = { steps = 4 }
+max_steps = 50
+"""
+
+
+def write_package(root: Path, critics: str = CRITICS) -> Path:
+    (root / "tools").mkdir(parents=True)
+    (root / "plans").mkdir()
+    (root / "params").mkdir()
+    (root / "SKILL.md").write_text(SKILL)
+    (root / "tools" / "critics.py").write_text(critics)
+    (root / "plans" / "playbooks.toml").write_text(PLANS)
+    (root / "params" / "critics.toml").write_text("at = 3\n")
+    return root
+
+
+MOVE = np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0, -1.0], np.float32)
+
+
+async def test_recovery_actions_replace_the_clients_until_reentry(gw: Gateway, tmp_path: Path) -> None:
+    pkg = write_package(tmp_path / "pkg")
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 40})
+    reset = (await group.reset(task="", seed=3, harness_dir=str(pkg)))[0]
+    assert len(reset.harness_content_hash) == 64
+    step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
+    # The client's three actions ran; step 3, observed after the third, made the critic propose
+    # and the orchestrator grant a hold: it acts next.
+    assert step.executed_actions == pytest.approx(np.stack([MOVE] * 3)) and step.recovery_actions == 0
+    assert step.harness_mode == "hold" and step.harness_intervention == "iv1"
+    step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
+    assert step.harness_mode == "hold" and step.harness_intervention == "iv1"
+    assert step.recovery_actions == 3
+    assert step.executed_actions[:, :6] == pytest.approx(np.zeros((3, 6)))  # frozen, not the client's move
+    step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
+    # One more frozen action, then re-entry hands back: the rest of the client's chunk is dropped.
+    assert step.harness_mode == "policy" and step.harness_intervention == ""
+    assert len(step.executed_actions) == 1 and step.recovery_actions == 1
+    step = (await group.action_step([MOVE]))[0]
+    assert step.executed_actions[0] == pytest.approx(MOVE) and step.recovery_actions == 0
+    await group.close()
+
+
+async def test_episode_report_with_action_shares_interventions_and_disabled_critics(gw: Gateway, tmp_path: Path) -> None:
+    pkg = write_package(tmp_path / "pkg")
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 24})
+    summary = (await group.run_episode(task="", seed=4, model="scripted-pick-place", execute_steps=2,
+                                       harness_dir=str(pkg)))[0]
+    report = summary.harness_report
+    assert report is not None and report.harness == "loop-test" and report.version == ""
+    assert report.policy_actions + report.recovery_actions == summary.steps == 24
+    assert report.recovery_actions == 4 and report.actions_by_mode == {"policy": 20, "hold": 4}
+    assert report.interventions_by_kind == {"hold": 1}
+    iv = report.interventions[0]
+    assert (iv["proposer"], iv["evidence"], iv["start_step"], iv["outcome"]) == ("critics.late", "late", 3, "reentered")
+    assert iv["end_step"] == 7 and iv["actions"] == 4 and "rule late->hold" in iv["decision"]
+    assert [d["name"] for d in report.disabled_critics] == ["critics.broken"]
+    assert "ValueError: broken critic" in report.disabled_critics[0]["reason"]
+    # The scripted policy answers one action per call: it was asked once per policy action, never
+    # while the recovery had control.
+    assert summary.policy_calls == report.policy_actions == 20
+    # The same slot without a harness: no report, nothing replaced.
+    plain = (await group.run_episode(task="", seed=4, model="scripted-pick-place", execute_steps=2))[0]
+    assert plain.harness_report is None and plain.policy_calls == 24
+    await group.close()
+
+
+async def test_bad_harness_references_are_refused_at_reset(gw: Gateway, tmp_path: Path) -> None:
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 10})
+    bad = write_package(tmp_path / "bad", critics="import os\n\n\ndef critic_x(window, params):\n    return None\n")
+    with pytest.raises(ZettaError) as err:
+        await group.reset(task="", seed=0, harness_dir=str(bad))
+    assert err.value.code.name == "INVALID_ARGUMENT" and "os" in err.value.details
+    with pytest.raises(ZettaError) as err:
+        await group.reset(task="", seed=0, harness_dir=str(tmp_path / "missing"))
+    assert err.value.code.name == "INVALID_ARGUMENT" and "not a directory" in err.value.details
+    ghost = write_package(tmp_path / "ghost")
+    (ghost / "SKILL.md").write_text(SKILL.replace('mode = "hold"', 'mode = "ghost"'))
+    with pytest.raises(ZettaError) as err:
+        await group.reset(task="", seed=0, harness_dir=str(ghost))
+    assert err.value.code.name == "INVALID_ARGUMENT" and "no plan defines" in err.value.details
+    # Nothing was half done: the slot still resets and runs without a harness.
+    assert (await group.reset(task="", seed=0))[0].harness_content_hash == ""
+    await group.close()
+
+
+async def test_harness_from_the_critic_registry_by_name_and_version(
+    gw: Gateway, shared_stack: LocalStack, tmp_path: Path
+) -> None:
+    pkg = write_package(tmp_path / "pkg")
+    with HarnessRegistry(shared_stack.critic_address) as registry:
+        manifest, _ = await asyncio.to_thread(registry.publish, pkg)
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 12})
+    summary = (await group.run_episode(task="", seed=5, model="scripted-pick-place", harness=manifest.ref))[0]
+    report = summary.harness_report
+    assert report is not None and (report.harness, report.version) == ("loop-test", str(manifest.version))
+    assert report.content_hash == manifest.content_hash and report.interventions_by_kind == {"hold": 1}
+    with pytest.raises(ZettaError) as err:
+        await group.reset(task="", seed=0, harness="loop-test@999")
+    assert err.value.code.name == "NOT_FOUND"
+    await group.close()

@@ -1,0 +1,46 @@
+"""Phase III gates: historical regression, then a strict held-out improvement on the same seeds."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.evolver.gate import GateParams, judge, regression_gate
+from services.evolver.store import Rollout
+
+
+def runs(outcomes: str, harness: str = "h@1", first_seed: int = 1) -> list[Rollout]:
+    """Rollouts on consecutive seeds; '1' success, '0' failure."""
+    return [Rollout(key=f"g/6/{first_seed + i}/{harness}/heldout", suite="g", task="6", seed=first_seed + i,
+                    init_state=(first_seed + i) % 50, split="heldout", harness=harness, purpose="heldout", round=1,
+                    success=c == "1", steps=100, first_missing="", milestones_reached=[], policy_steps=100,
+                    recovery_steps=0, interventions=0, trace_path="", video_path="", wall_s=1.0)
+            for i, c in enumerate(outcomes)]
+
+
+def test_admits_only_a_strict_improvement_after_full_regression() -> None:
+    """3/4 vs the current 2/4 (bare 1/4) with the whole cluster solved: admitted, delta over bare +50%."""
+    v = judge(runs("111"), runs("1101"), runs("1001", "cur"), runs("1000", ""))
+    assert v.admitted and abs(v.delta_over_bare - 0.5) < 1e-9
+    assert v.to_dict()["heldout"]["wilson95"][0] < 0.75 < v.to_dict()["heldout"]["wilson95"][1]
+
+
+def test_refuses_equal_or_worse_heldout() -> None:
+    """Equal held-out success is not an improvement; neither is worse."""
+    assert not judge(runs("111"), runs("1001"), runs("1001", "cur"), runs("0000", "")).admitted
+    v = judge(runs("111"), runs("1000"), runs("1001", "cur"), runs("0000", ""))
+    assert not v.admitted and "not a strict improvement" in v.reason
+
+
+def test_refuses_a_candidate_that_fails_historical_regression() -> None:
+    """A candidate that leaves one cluster seed failing is refused before held-out counts, by default;
+    a lower regression bar is an explicit parameter."""
+    v = judge(runs("110"), runs("1111"), runs("0000", "cur"), runs("0000", ""))
+    assert not v.admitted and "historical regression 2/3" in v.reason
+    assert judge(runs("110"), runs("1111"), runs("0000", "cur"), runs("0000", ""), GateParams(0.5)).admitted
+    assert regression_gate([]) == "no cluster seed to regress on"
+
+
+def test_heldout_comparison_must_share_seeds() -> None:
+    """Comparing success on different held-out seeds is refused outright."""
+    with pytest.raises(ValueError, match="different seeds"):
+        judge(runs("1"), runs("11"), runs("11", "cur", first_seed=5), runs("11", ""))

@@ -1,0 +1,165 @@
+"""Offline repair over the real harness library: bounded template search, replay, package checks,
+consolidation, and the optional LLM backend against a tiny OpenAI-compatible server on loopback."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, HTTPServer
+
+import pytest
+
+from services.critic.package.loader import load_files
+from services.critic.runtime.engine import HarnessRuntime
+from services.critic.runtime.library import PREDICATES
+from services.evolver.consolidate import consolidate
+from services.evolver.diagnose import Case, repair_spec
+from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
+from services.evolver.eod import t_eod
+from services.evolver.llm import LLMConfig, LLMError, propose
+from services.evolver.profile import SuccessIndex
+from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, param_grid, search, stage_of)
+from services.evolver.replay import first_fire
+from tests.unit.test_evolver_fixtures import make_trace
+
+PARENT = HarnessDraft("evolved-6", ("6",))
+
+
+def drop_cluster() -> tuple[object, ReplayCase, list[ReplayCase], list[object]]:
+    idx = SuccessIndex.build([make_trace("success", s) for s in range(4)])
+    drops = [make_trace("drop", s) for s in range(4, 8)]
+    eods = [t_eod(t, idx) for t in drops]
+    detect = {n: first_fire(drops[0], p.fn, {k: v.default for k, v in p.params.items()}) for n, p in PREDICATES.items()
+              if n not in ("grasp_retained", "supported_placement")}
+    spec = repair_spec("6/r1/K1", "key", Case(drops[0], eods[0], False, "on(a,b)", {}, detect, 40), [])
+    medoid = ReplayCase(drops[0], eods[0].step)
+    members = [ReplayCase(d, e.step) for d, e in zip(drops[1:], eods[1:])]
+    return spec, medoid, members, [make_trace("success", 9)]
+
+
+def test_param_grid_is_bounded_and_in_range() -> None:
+    """Defaults first; every other setting moves at most max_edits parameters, never out of range."""
+    schema = PREDICATES["non_approach"].params
+    grid = param_grid(schema, max_edits=1, fraction=0.25)
+    defaults = {k: p.default for k, p in schema.items()}
+    assert grid[0] == defaults and len(grid) == 1 + 2 * len(schema)
+    for g in grid:
+        assert sum(g[k] != defaults[k] for k in g) <= 1
+        assert all(schema[k].low <= v <= schema[k].high for k, v in g.items())
+    assert max(sum(g[k] != defaults[k] for k in g) for g in param_grid(schema, 2, 0.25)) == 2
+
+
+def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
+    """A drop cluster is a critic-layer false negative; the search pairs a grasp_lost critic that fires
+    near t_EOD on every member, silent on successes, with a regrasp-type recovery, gated on the
+    stage of m*; the resulting package loads and builds a runtime."""
+    spec, medoid, members, succ = drop_cluster()
+    assert spec.layer == "critic"
+    cands = search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3))
+    assert cands and cands[0].critic.template == "grasp_lost"
+    best = cands[0]
+    assert abs(best.fire_step - medoid.t_eod) <= 40 and best.coverage == 1.0 and best.false_positive == 0.0
+    assert best.plan.recovery in ("regrasp", "release_and_restage") and best.critic.missing == ("on",)
+    assert check_patch(PARENT, best, max_edits=3) is None
+    runtime = HarnessRuntime(load_files(render(best.apply(PARENT))))
+    assert [c.name for c in runtime.critics] == ["c_grasp_lost"]
+    # The buffer of rejected candidates is honoured: a rejected harness is never proposed again.
+    rejected = {c.apply(PARENT).fingerprint() for c in cands}
+    again = search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3), rejected.__contains__)
+    assert not {c.apply(PARENT).fingerprint() for c in again} & rejected
+
+
+def test_patch_checks_refuse_unknown_templates_out_of_range_and_oversized_patches() -> None:
+    """Every patch, searched or LLM-written, must name library templates with in-range parameters
+    and stay within the edit bound."""
+    ok = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 3}, "grasp_lost", "regrasp"),
+                   PlanDraft("regrasp"), 0, 1.0, 0.0, 2)
+    assert check_patch(PARENT, ok, 3) is None
+    bad_t = Candidate("c_x", CriticDraft("teleport", {}, "x", "regrasp"), PlanDraft("regrasp"), 0, 1, 0, 2)
+    assert "unknown predicate" in (check_patch(PARENT, bad_t, 3) or "")
+    bad_r = Candidate("c_grasp_lost", ok.critic, PlanDraft("magic"), 0, 1, 0, 2)
+    assert "unknown recovery" in (check_patch(PARENT, bad_r, 3) or "")
+    bad_p = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 500}, "grasp_lost", "regrasp"),
+                      PlanDraft("regrasp"), 0, 1, 0, 2)
+    assert "outside" in (check_patch(PARENT, bad_p, 3) or "")
+    assert "at most 1" in (check_patch(PARENT, ok, 1) or "")
+
+
+def test_stage_of_is_the_milestone_kind() -> None:
+    """Adjudication is gated on the kind of m*, which names no task object."""
+    assert stage_of("on(wine_bottle_1,wine_rack_1)") == ("on",) and stage_of("<none>") == ()
+
+
+def test_consolidation_unions_critics_and_keeps_the_best_covering_setting() -> None:
+    """Two patches of one template keep the better-covering setting; different templates are unioned."""
+    a = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 1}, "grasp_lost", "regrasp"),
+                  PlanDraft("regrasp"), 44, 0.5, 0.0, 2)
+    b = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 3}, "grasp_lost", "release_and_restage"),
+                  PlanDraft("release_and_restage"), 48, 1.0, 0.0, 2)
+    c = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "pregrasp"), PlanDraft("pregrasp"),
+                  10, 1.0, 0.0, 2)
+    merged = consolidate(PARENT, [a, b, c])
+    assert set(merged.critics) == {"c_grasp_lost", "c_non_approach"}
+    assert merged.critics["c_grasp_lost"].params == {"confirm": 3}
+    assert merged.plans["grasp_lost"].recovery == "release_and_restage"
+    assert consolidate(PARENT, []) == PARENT
+    HarnessRuntime(load_files(render(merged)))
+
+
+class _Handler(BaseHTTPRequestHandler):
+    reply = ""
+    seen: list[dict] = []
+
+    def do_POST(self) -> None:  # noqa: N802
+        body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+        _Handler.seen.append({"path": self.path, "auth": self.headers.get("Authorization"), "body": body})
+        out = json.dumps({"choices": [{"message": {"role": "assistant", "content": _Handler.reply}}]}).encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(out)))
+        self.end_headers()
+        self.wfile.write(out)
+
+    def log_message(self, *args: object) -> None:
+        return None
+
+
+@pytest.fixture
+def llm_server() -> Iterator[str]:
+    server = HTTPServer(("127.0.0.1", 0), _Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}/v1"
+    server.shutdown()
+    server.server_close()
+
+
+def test_llm_patches_pass_the_same_checks(llm_server: str) -> None:
+    """Of four proposed patches only the in-range grasp_lost one survives: an unknown template, an
+    out-of-range parameter and a critic that never fires near t_EOD are refused with reasons."""
+    spec, medoid, members, succ = drop_cluster()
+    _Handler.reply = "```json\n" + json.dumps({"patches": [
+        {"critic": {"template": "grasp_lost", "params": {"confirm": 2}}, "recovery": {"template": "regrasp", "args": {}}},
+        {"critic": {"template": "teleport", "params": {}}, "recovery": {"template": "regrasp"}},
+        {"critic": {"template": "grasp_lost", "params": {"confirm": 99}}, "recovery": {"template": "regrasp"}},
+        {"critic": {"template": "held_near_target", "params": {}}, "recovery": {"template": "fine_alignment"}},
+    ]}) + "\n```"
+    cfg = LLMConfig(base_url=llm_server, model="tiny", api_key="k")
+    accepted, refused = propose(cfg, spec, PARENT, medoid, members, succ)
+    assert [(c.critic.template, c.critic.params["confirm"], c.source) for c in accepted] == [("grasp_lost", 2, "llm")]
+    assert len(refused) == 3 and any("unknown predicate" in r for r in refused)
+    assert any("outside" in r for r in refused) and any("does not fire" in r for r in refused)
+    req = _Handler.seen[-1]
+    assert req["path"] == "/v1/chat/completions" and req["auth"] == "Bearer k" and req["body"]["model"] == "tiny"
+    assert "grasp_lost" in req["body"]["messages"][1]["content"]
+
+
+def test_llm_errors_are_clear(llm_server: str) -> None:
+    """A reply without patches, or no server at all, is an LLMError, never a silent empty result."""
+    spec, medoid, members, succ = drop_cluster()
+    _Handler.reply = "I cannot help with that."
+    with pytest.raises(LLMError, match="no JSON"):
+        propose(LLMConfig(llm_server, "tiny"), spec, PARENT, medoid, members, succ)
+    with pytest.raises(LLMError, match="no usable completion"):
+        propose(LLMConfig("http://127.0.0.1:9/v1", "tiny", timeout_s=2), spec, PARENT, medoid, members, succ)

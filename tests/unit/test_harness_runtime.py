@@ -1,0 +1,364 @@
+"""The harness runtime: adjudication, the re-entry contract, budgets and the episode report.
+
+Packages are built in memory (SKILL.md front matter as a dict, tools as modules made from
+source) so each test states exactly the harness it needs; the last test builds the shipped
+example package through the real loader.
+"""
+
+from __future__ import annotations
+
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.critic.package.model import LoadedPackage
+from services.critic.runtime.engine import HarnessError, HarnessRuntime
+from services.critic.runtime.orchestrator import Orchestrator, Rule
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TOOLS = '''
+import numpy as np
+from services.critic.runtime.api import Proposal
+
+
+def critic_flag(window, params):
+    """Proposes ``flag`` evidence while the observation's ``flag`` tensor is set."""
+    if window.now.obs["flag"][0] > 0.5:
+        return Proposal("tools.flag", "flag", "push", {"value": float(window.now.obs["flag"][0])})
+    return None
+
+
+class Push:
+    """Pushes +x for ``steps`` steps (or fails at once when ``fail`` is set)."""
+
+    name = "push"
+
+    def __init__(self, params):
+        self.left = int(params.get("steps", 3))
+        self.fail = bool(params.get("fail", False))
+        self.status, self.reason = "running", ""
+
+    def start(self, window, memory):
+        pass
+
+    def act(self, window):
+        if self.fail:
+            self.status, self.reason = "failed", "told to fail"
+            return None
+        if self.left <= 0:
+            self.status = "done"
+            return None
+        self.left -= 1
+        return np.array([1.0, 0, 0, 0, 0, 0, 0])
+
+
+def make_push(params):
+    return Push(params)
+'''
+
+
+def module(name: str, source: str) -> types.ModuleType:
+    mod = types.ModuleType(name)
+    exec(compile(source, f"<{name}>", "exec"), mod.__dict__)  # noqa: S102 - test-built package code
+    return mod
+
+
+def package(skill: dict, plans: dict | None = None, extra_tools: dict[str, str] | None = None) -> LoadedPackage:
+    tools = {"tools": module("h3b_test_tools", TOOLS)}
+    for stem, src in (extra_tools or {}).items():
+        tools[stem] = module(f"h3b_test_{stem}", src)
+    base = {"name": "test", "description": "test harness", "runtime": {"critic_budget_ms": 20.0, "critic_hard_limit_ms": 150.0}}
+    return LoadedPackage(
+        name="test", version="1", content_hash="abc", skill={**base, **skill}, skill_text="",
+        params={}, plans=plans if plans is not None else {"playbooks": {"push": {"recovery": "tools:make_push", "params": {"steps": 3}}}},
+        tools=tools,
+    )
+
+
+RULE = {"adjudication": [{"evidence": "flag", "mode": "push", "priority": 1}]}
+
+
+def obs(flag: float = 0.0, speed: float = 0.0) -> dict[str, np.ndarray]:
+    return {"flag": np.array([flag]), "phi_object_vel": np.array([speed, 0, 0, 0, 0, 0]),
+            "phi_contact_force": np.zeros(3)}
+
+
+ACT = np.zeros(7)
+
+
+def run(rt: HarnessRuntime, states: list[dict]) -> list:
+    """Feed states as if each followed the action the previous decision asked for."""
+    decisions = [rt.step(states[0], None, frozenset())]
+    for s in states[1:]:
+        prev = decisions[-1]
+        decisions.append(rt.step(s, prev.action if prev.action is not None else ACT, frozenset()))
+    return decisions
+
+
+# ---- adjudication -----------------------------------------------------------------------------------
+
+
+def test_a_proposal_without_an_accepting_rule_never_takes_control() -> None:
+    rt = HarnessRuntime(package({}))
+    rt.start("task", [])
+    decisions = run(rt, [obs(1.0)] * 5)
+    assert all(d.mode == "policy" and d.action is None for d in decisions)
+    assert rt.report.proposals == 5 and rt.report.rejected == 5 and not rt.report.interventions
+
+
+def test_milestone_conditions_and_priorities() -> None:
+    from services.critic.runtime.api import Proposal
+
+    names = ["reached(a)", "grasped(a)", "lifted(a)"]
+    rules = [Rule("x", "low", 1), Rule("x", "high", 5, requires_milestone=("grasped",)),
+             Rule("y", "gated", 9, unless_milestone=("reached(a)",)), Rule("z", "m", 3, missing=("lifted",))]
+    orch = Orchestrator(rules)
+    px, py, pz = Proposal("c", "x", ""), Proposal("c", "y", ""), Proposal("c", "z", "")
+    none: dict[str, bool] = {}
+    assert orch.adjudicate([px], frozenset({"reached(a)"}), names, none).rule.mode == "low"
+    assert orch.adjudicate([px], frozenset({"reached(a)", "grasped(a)"}), names, none).rule.mode == "high"
+    v = orch.adjudicate([py], frozenset({"reached(a)"}), names, none)
+    assert v.accepted is None and "already reached" in v.rejected[0][1]
+    assert orch.adjudicate([pz], frozenset({"reached(a)", "grasped(a)"}), names, none).rule.mode == "m"
+    v = orch.adjudicate([pz], frozenset(), names, none)
+    assert v.accepted is None and "first missing milestone is reached(a)" in v.rejected[0][1]
+    v = orch.adjudicate([px], frozenset({"grasped(a)"}), names, {"low": True, "high": True})
+    assert v.accepted is None and "used its budget" in v.rejected[0][1]
+
+
+# ---- the re-entry contract --------------------------------------------------------------------
+
+
+def test_control_returns_only_when_evidence_cleared_and_stable_for_k_steps() -> None:
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.5, "k": 3}}))
+    rt.start("task", [])
+    states = [obs(1.0)] * 6 + [obs(0.0, speed=0.5)] * 4 + [obs(0.0)] * 5
+    decisions = run(rt, states)
+    modes = [d.mode for d in decisions]
+    # takes control at step 0, pushes 3 steps, then holds: evidence still proposed (steps 4-5),
+    # cleared but unstable (6-9), then stable: back to the policy on the 3rd stable step (12).
+    assert modes[:12] == ["push"] * 12 and modes[12] == "policy", modes
+    pushes = [d.action for d in decisions[:3]]
+    assert all(a[0] == 1.0 for a in pushes) and decisions[5].action[:6] == pytest.approx(np.zeros(6))
+    iv = rt.report.interventions[0]
+    assert (iv.proposer, iv.evidence, iv.outcome, iv.start_step, iv.end_step) == ("tools.flag", "flag", "reentered", 0, 12)
+    assert "rule flag->push" in iv.decision and iv.details == {"value": 1.0}
+
+
+def test_clear_when_predicate_must_hold_before_reentry() -> None:
+    plans = {"playbooks": {"push": {"recovery": "tools:make_push", "params": {"steps": 1},
+                                    "clear_when": "grasp_retained", "clear_params": {"steps": 2}}}}
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.5, "k": 1}}, plans))
+    rt.start("task", [])
+    held = {**obs(0.0), "phi_grasp": np.array([1.0]), "phi_object_gripper_drift": np.array([0.0])}
+    decisions = run(rt, [obs(1.0)] + [obs(0.0)] * 4 + [held] * 3)
+    assert [d.mode for d in decisions].index("policy") == 6  # after two frames of retained grasp
+
+
+def test_recovery_failure_and_budget_end_an_intervention() -> None:
+    plans = {"playbooks": {"push": {"recovery": "tools:make_push", "params": {"fail": True}, "max_uses": 5}}}
+    rt = HarnessRuntime(package(RULE, plans))
+    rt.start("task", [])
+    run(rt, [obs(1.0)] * 3)
+    assert rt.report.interventions[0].outcome == "recovery_failed: told to fail"
+    plans = {"playbooks": {"push": {"recovery": "tools:make_push", "params": {"steps": 100}, "max_steps": 4, "max_uses": 1}}}
+    rt = HarnessRuntime(package(RULE, plans))
+    rt.start("task", [])
+    decisions = run(rt, [obs(1.0)] * 10)
+    assert rt.report.interventions[0].outcome == "budget_exhausted"
+    assert len(rt.report.interventions) == 1  # max_uses: the playbook is not granted again
+    assert [d.mode for d in decisions].count("push") == 4
+
+
+def test_action_shares_and_interventions_by_kind() -> None:
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.5, "k": 1}}))
+    rt.start("task", [])
+    run(rt, [obs(0.0)] * 3 + [obs(1.0)] + [obs(0.0)] * 6)
+    report = rt.finish(success=True)
+    assert report.policy_actions + report.recovery_actions == 9
+    assert report.recovery_actions == report.actions_by_mode["push"] == 3  # stable at once: no hold step
+    assert report.interventions_by_kind == {"push": 1}
+    assert report.policy_share == pytest.approx(6 / 9)
+
+
+def test_an_episode_ending_under_a_recovery_is_recorded() -> None:
+    rt = HarnessRuntime(package(RULE))
+    rt.start("task", [])
+    run(rt, [obs(1.0)] * 2)
+    assert rt.finish(success=False).interventions[0].outcome == "episode_end"
+
+
+def test_start_resets_the_episode_state() -> None:
+    rt = HarnessRuntime(package(RULE))
+    rt.start("a", [])
+    run(rt, [obs(1.0)] * 2)
+    rt.start("b", [])
+    assert rt.mode == "policy" and not rt.report.interventions and rt.report.policy_actions == 0
+
+
+def test_cooldown_gives_the_policy_steps_before_a_new_intervention() -> None:
+    rt = HarnessRuntime(package({**RULE, "runtime": {"critic_budget_ms": 20.0, "cooldown": 3},
+                                 "reentry": {"gamma": 0.5, "k": 1}}))
+    rt.start("task", [])
+    states = [obs(1.0)] + [obs(0.0)] * 3 + [obs(1.0)] * 5
+    modes = [d.mode for d in run(rt, states)]
+    back = modes.index("policy")
+    assert modes[back:back + 4] == ["policy"] * 4 and modes[back + 4] == "push"
+
+
+# ---- misbehaving critics ------------------------------------------------------------------------
+
+
+BAD = '''
+from services.critic.runtime.api import Proposal
+
+
+def critic_raises(window, params):
+    if window.now.step >= 2:
+        raise RuntimeError("boom")
+    return None
+
+
+def critic_slow(window, params):
+    if window.now.step < 1:
+        return None
+    total = 0
+    for i in range(400_000):
+        total += i
+    return None
+
+
+def critic_endless(window, params):
+    if window.now.step < 3:
+        return None
+    while True:
+        pass
+
+
+def critic_wrong_type(window, params):
+    return "not a proposal"
+'''
+
+
+def test_critics_that_raise_overrun_hang_or_misreport_are_switched_off_and_the_episode_goes_on() -> None:
+    rt = HarnessRuntime(package({**RULE, "runtime": {"critic_budget_ms": 5.0, "critic_hard_limit_ms": 300.0}},
+                                extra_tools={"bad": BAD}))
+    rt.start("task", [])
+    decisions = run(rt, [obs(0.0)] * 5 + [obs(1.0)])
+    disabled = {d.name: d for d in rt.report.disabled_critics}
+    assert set(disabled) == {"bad.raises", "bad.slow", "bad.endless", "bad.wrong_type"}
+    assert "RuntimeError: boom" in disabled["bad.raises"].reason and disabled["bad.raises"].step == 2
+    # slow from step 1 on: its first slow call (wall clock) makes it suspect, the second (CPU) ends it
+    assert "CPU" in disabled["bad.slow"].reason and disabled["bad.slow"].step == 2
+    assert "hard limit" in disabled["bad.endless"].reason and disabled["bad.endless"].step == 3
+    assert "not a Proposal" in disabled["bad.wrong_type"].reason and disabled["bad.wrong_type"].step == 0
+    assert decisions[-1].mode == "push"  # the good critic still runs and its evidence is acted on
+    rt.start("next", [])
+    assert all(c.enabled for c in rt.critics)  # switched off for one episode only
+
+
+def test_the_watchdog_leaves_no_pending_interrupt_behind() -> None:
+    from services.critic.runtime.budget import CallBudget, guarded_call
+
+    def endless() -> None:
+        while True:
+            pass
+
+    result, why = guarded_call(endless, (), CallBudget(0.001, 0.05))
+    assert result is None and "hard limit" in why
+    total = 0
+    for i in range(200_000):  # an interruption delivered late would land here
+        total += i
+    assert guarded_call(lambda: 7, (), CallBudget(0.05, 0.1)) == (7, "")
+
+
+def test_a_call_preempted_once_is_not_switched_off() -> None:
+    import time
+
+    from services.critic.runtime.budget import CallBudget, guarded_call
+
+    budget = CallBudget(0.005, 1.0)
+    assert guarded_call(time.sleep, (0.02,), budget) == (None, "")  # over in wall time, not in CPU
+    assert budget.suspect
+    assert guarded_call(time.sleep, (0.02,), budget) == (None, "")  # CPU time now decides: still fine
+
+
+# ---- building a harness ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("skill", "plans", "match"),
+    [
+        ({"critics": [{"predicate": "nope"}]}, None, "not in the library"),
+        ({"critics": [{"predicate": "drift", "params": {"max_drift": 9.0}}]}, None, "outside"),
+        ({"adjudication": [{"evidence": "x", "mode": "ghost"}]}, None, "no plan defines"),
+        ({}, {"p": {"push": {"recovery": "teleport"}}}, "not in the library"),
+        ({}, {"p": {"push": {"recovery": "tools:missing"}}}, "no recovery factory"),
+        ({}, {"p": {"push": {"recovery": "freeze", "bogus": 1}}}, "unknown key"),
+        ({"reentry": {"gamma": 2.0}}, None, "gamma"),
+    ],
+)
+def test_a_package_that_does_not_make_a_harness_is_refused_with_the_reason(skill, plans, match) -> None:
+    with pytest.raises(HarnessError, match=match):
+        HarnessRuntime(package(skill, plans))
+
+
+def test_the_example_package_builds() -> None:
+    from services.critic.package.loader import load_package
+
+    rt = HarnessRuntime(load_package(ROOT / "examples" / "harnesses" / "libero-goal-pick-place"))
+    assert {"approach", "retention", "placement", "critics.empty_carry"} <= {c.name for c in rt.critics}
+    assert set(rt.plans) == {"acquire", "place"}
+
+
+def test_reentry_clears_lists_evidence_that_blocks_every_handback() -> None:
+    other = '''
+from services.critic.runtime.api import Proposal
+
+
+def critic_other(window, params):
+    if window.now.obs.get("other", [0.0])[0] > 0.5:
+        return Proposal("other.other", "unsafe", "", {})
+    return None
+'''
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.0, "k": 1, "clears": ["unsafe"]}},
+                                extra_tools={"other": other}))
+    rt.start("task", [])
+    unsafe = {**obs(0.0), "other": np.array([1.0])}
+    modes = [d.mode for d in run(rt, [obs(1.0)] + [unsafe] * 6 + [obs(0.0)])]
+    assert modes[:7] == ["push"] * 7 and modes[7] == "policy"
+
+
+def test_a_recovery_that_raises_or_acts_wrongly_fails_its_intervention_not_the_episode() -> None:
+    broken = '''
+import numpy as np
+
+
+class Bad:
+    def __init__(self, params):
+        self.kind = params["kind"]
+        self.status, self.reason = "running", ""
+
+    def start(self, window, memory):
+        pass
+
+    def act(self, window):
+        if self.kind == "raise":
+            raise KeyError("missing")
+        return np.zeros(3)
+
+
+def make_bad(params):
+    return Bad(params)
+'''
+    for kind, why in (("raise", "raised KeyError"), ("shape", "the env takes (7,)")):
+        plans = {"p": {"push": {"recovery": "broken:make_bad", "params": {"kind": kind}}}}
+        rt = HarnessRuntime(package(RULE, plans, extra_tools={"broken": broken}))
+        rt.action_shape = (7,)
+        rt.start("task", [])
+        decisions = run(rt, [obs(1.0)] * 2)
+        assert decisions[0].mode == "policy" and decisions[0].action is None
+        assert why in rt.report.interventions[0].outcome
