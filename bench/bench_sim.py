@@ -16,9 +16,10 @@ create     Slot create and reset against a fresh environment build: a cold proce
            longest stall a 1 ms ticker thread saw during each; a new env on the group's shared
            template; a slot from the group's pool; resets with a held seed, a new seed (private
            model rewritten in place), a seed another slot holds (model shared).
-resetphases Where one LIBERO-Goal slot reset (same key every time, fast path) spends its time:
-           robosuite's env.reset(), the settle steps, the rest (init state, task state,
-           observation); medians per phase and their shares. Not in the default run.
+resetphases Where one LIBERO-Goal slot reset (fast path) spends its time: robosuite's env.reset(),
+           the settle steps, the rest (init state, task state, observation), for keys the env
+           has not settled before (settle steps replayed) and for a repeated key (its settled
+           snapshot restored, families/settled.py). Not in the default run.
 parallel   Aggregate steps/s of N LIBERO-Goal slots stepping at once on this machine: one thread
            stepping them in turn, N threads in one process (the env worker's model: one slot
            thread per slot, one shared model), N processes with one slot each -- for the fast
@@ -79,15 +80,16 @@ def _family(name: str, config: dict[str, Any]) -> Any:
 # reset phases
 
 
-def bench_reset_phases(repeats: int) -> dict[str, float]:
-    """Median ms per phase of a LIBERO slot reset: each phase is timed by wrapping the call."""
+def bench_reset_phases(repeats: int) -> dict[str, dict[str, float]]:
+    """Median ms per phase of a LIBERO slot reset, each phase timed by wrapping the call: a key the
+    env has not settled yet (settle steps replayed) and a repeated key (settled snapshot restored)."""
+    from services.env_worker.families import settled
     from services.env_worker.families.base import ResetSpec
     from services.env_worker.fast_step import make_stepper
 
     family = _family("libero", LIBERO)
     slot = family.init()
-    spec = ResetSpec(TASK, seed=0, init_state_index=0)
-    slot.reset(spec)
+    slot.reset(ResetSpec(TASK, seed=0, init_state_index=0))
     env = slot._env
     stepper = make_stepper(env, True)
     spent: dict[str, float] = defaultdict(float)
@@ -106,27 +108,35 @@ def bench_reset_phases(repeats: int) -> dict[str, float]:
 
     timed(env, "reset", "env.reset")
     timed(stepper, "step", "settle steps")
-    rows: dict[str, list[float]] = defaultdict(list)
+    rounds = max(repeats, 5) * 2
+    # More distinct init states than an env keeps snapshots of: every replayed reset misses.
+    fresh_keys = [1 + (k % (settled.CAPACITY + 2)) for k in range(rounds)]
+    out: dict[str, dict[str, float]] = {}
     try:
-        for _ in range(max(repeats, 5) * 2):
-            spent.clear()
-            total = _timed(lambda: slot.reset(spec))[0] * 1000
-            rows["total"].append(total)
-            for phase in ("env.reset", "settle steps"):
-                rows[phase].append(spent[phase] * 1000)
-            rows["rest"].append(total - 1000 * (spent["env.reset"] + spent["settle steps"]))
+        for mode, inits in (("replayed", fresh_keys), ("restored", [0] * rounds)):
+            rows: dict[str, list[float]] = defaultdict(list)
+            for k in inits:
+                spent.clear()
+                spec = ResetSpec(TASK, seed=0, init_state_index=k)
+                total = _timed(lambda spec=spec: slot.reset(spec))[0] * 1000
+                rows["total"].append(total)
+                for phase in ("env.reset", "settle steps"):
+                    rows[phase].append(spent[phase] * 1000)
+                rows["rest"].append(total - 1000 * (spent["env.reset"] + spent["settle steps"]))
+            out[mode] = {phase: _median(v) for phase, v in rows.items()}
     finally:
         del env.reset, stepper.step  # the instance attributes set above
         slot.close()
         family.close()
-    return {phase: _median(v) for phase, v in rows.items()}
+    return out
 
 
-def print_reset_phases(res: dict[str, float]) -> None:
-    print(f"\n== reset phases: one LIBERO-Goal slot, same key, fast path (median ms; load average "
-          f"{os.getloadavg()[0]:.1f})")
+def print_reset_phases(res: dict[str, dict[str, float]]) -> None:
+    print(f"\n== reset phases: one LIBERO-Goal slot, fast path (median ms; load average {os.getloadavg()[0]:.1f})")
+    print(f"{'phase':14} {'replayed':>10} {'restored':>10}")
     for phase in ("env.reset", "settle steps", "rest", "total"):
-        print(f"{phase:14} {res[phase]:8.1f} ms {100 * res[phase] / res['total']:5.0f}%")
+        print(f"{phase:14} {res['replayed'][phase]:10.1f} {res['restored'][phase]:10.1f}")
+    print(f"replayed / restored: {res['replayed']['total'] / res['restored']['total']:.1f}x")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -259,3 +259,40 @@ def test_camera_images_are_upright_uint8() -> None:
     finally:
         slot.close()
         family.close()
+
+
+def test_repeated_reset_restores_the_settled_state_bit_for_bit(libero, libero_slot) -> None:
+    """The second reset of a key on an env restores its post-settle snapshot instead of replaying
+    the settle steps, and the episode that follows is the replayed one, qpos and qvel included."""
+    from services.env_worker.fast_step import make_stepper
+
+    spec = ResetSpec(CREAM_CHEESE, seed=5, init_state_index=6)
+    actions = np.random.default_rng(9).uniform(-1, 1, size=(60, 7)).astype(np.float32)
+
+    def episode(slot) -> tuple[list[dict[str, np.ndarray]], np.ndarray]:
+        obs = [slot.reset(spec)[0]]
+        env = slot._env
+        states = [np.concatenate([env.sim.data.qpos, env.sim.data.qvel])]
+        for a in actions:
+            obs.append(slot.step(a, render=False).observation)
+            states.append(np.concatenate([env.sim.data.qpos, env.sim.data.qvel]))
+        return obs, np.array(states)
+
+    libero_slot.reset(spec)  # settles and keeps the snapshot
+    stepper = make_stepper(libero_slot._env, True)
+    calls = []
+    stepper.step = lambda action, _step=stepper.step: calls.append(1) or _step(action)
+    try:
+        restored, restored_states = episode(libero_slot)
+        assert len(calls) == len(actions), "the reset replayed settle steps instead of restoring them"
+        libero_slot.reset(ResetSpec(CREAM_CHEESE, seed=5, init_state_index=7))  # another init state: replayed
+        assert len(calls) == len(actions) + libero.config["settle_steps"]
+    finally:
+        del stepper.step
+    other = libero.init()
+    try:
+        replayed, replayed_states = episode(other)  # a fresh env: settle steps replayed
+    finally:
+        other.close()
+    assert np.array_equal(restored_states, replayed_states)
+    _assert_same(restored, replayed)

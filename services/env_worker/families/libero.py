@@ -4,7 +4,8 @@ An episode is keyed by (suite, task, init state index, seed): the init state fix
 object, and the seed fixes what LIBERO still samples on reset (fixture placement, a few mm to cm).
 After the init state is applied the family runs ``settle_steps`` no-op actions with the gripper
 open, as LIBERO's evaluation does, so objects dropped into place have come to rest; those steps
-do not count as episode steps.
+do not count as episode steps. An env that settled a key before restores that settled state
+instead of stepping again (families/settled.py), bit for bit the same.
 
 Privileged task state comes from the BDDL goal (families/task_state.py): the goal is expanded into
 ordered stages and milestones (services/env_worker/milestones.py); the stage being worked on names
@@ -68,7 +69,8 @@ from services.env_worker.families.robosuite_lift import (  # noqa: E402
 )
 from services.env_worker.families import task_state  # noqa: E402
 from services.env_worker.families.task_state import TaskProgressSlot, TaskState  # noqa: E402
-from services.env_worker.fast_step import make_stepper  # noqa: E402
+from services.env_worker.families import settled  # noqa: E402
+from services.env_worker.fast_step import FastStepper, make_stepper  # noqa: E402
 from services.env_worker.sharing import private_model_writes  # noqa: E402
 
 #: Model arrays a LIBERO reset writes (sampled fixture poses); see services/env_worker/sharing.py.
@@ -304,11 +306,20 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
         # What LIBERO's ControlEnv.set_init_state does, on the domain env itself.
         env.sim.set_state_from_flattened(init_state)
         env.sim.forward()
-        env._post_process()
-        env._update_observables(force=True)
-        obs = env._get_observations()
-        for _ in range(self._family.config["settle_steps"]):
-            obs, _, _, _ = make_stepper(env, self._family.config["fast_step"]).step(_SETTLE_ACTION)
+        stepper = make_stepper(env, self._family.config["fast_step"])
+        key = (index, spec.init_state_index, spec.seed, self._family.config["settle_steps"])
+        start = settled.start_state(env) if isinstance(stepper, FastStepper) else None
+        snapshot = settled.lookup(env, key, start) if start is not None else None
+        if snapshot is not None:  # this key settled on this env before: restore, do not replay
+            obs = snapshot.restore(env)
+        else:
+            env._post_process()
+            env._update_observables(force=True)
+            obs = env._get_observations()
+            for _ in range(self._family.config["settle_steps"]):
+                obs, _, _, _ = stepper.step(_SETTLE_ACTION)
+            if start is not None:
+                settled.store(env, key, settled.capture(env, start, obs))
         self._state.start()  # milestones and signals start after the settle steps
         raw = self._observation(obs, None)
         return raw, self._family.instruction(index, env), self._family.config["max_steps"]
