@@ -52,7 +52,12 @@ class Finding:
 
 
 def _near(step: int | None, eod: EOD, window: int) -> bool:
-    return step is not None and abs(step - eod.step) <= window
+    """Whether a firing at ``step`` catches the divergence: within ``window`` steps of t_EOD, or, when
+    t_EOD had no reference to locate it (the closest-approach fallback), anywhere up to it: an
+    earlier firing is then a precursor, not a miss."""
+    if step is None:
+        return False
+    return abs(step - eod.step) <= window if eod.referenced else step <= eod.step + window
 
 
 def _intervention_at(trace: Trace, step: int, window: int) -> dict[str, Any] | None:

@@ -39,9 +39,10 @@ class EOD:
     progress: int
     referenced: bool
 
-    def to_dict(self) -> dict[str, float | int | bool]:
-        """JSON form."""
-        return {"frame": self.frame, "step": self.step, "distance": self.distance, "progress": self.progress,
+    def to_dict(self) -> dict[str, float | int | bool | None]:
+        """JSON form (strict JSON: an unreferenced distance is null, not Infinity)."""
+        return {"frame": self.frame, "step": self.step,
+                "distance": self.distance if np.isfinite(self.distance) else None, "progress": self.progress,
                 "referenced": self.referenced}
 
 

@@ -178,9 +178,10 @@ class Evolution:
         self.store.record("cluster", record, ident=spec.cluster)
         if not spec.repairable:
             return record, []
-        medoid = ReplayCase(traces[cl.medoid], eods[cl.medoid].step)
-        members = [ReplayCase(tr, e.step) for j, (tr, e) in enumerate(zip(traces, eods)) if j != cl.medoid]
-        seeds, medoid_seed = cl.seeds, cl.medoid_failure.rollout.seed
+        medoid = ReplayCase(traces[cl.medoid], eods[cl.medoid].step, eods[cl.medoid].referenced)
+        members = [ReplayCase(tr, e.step, e.referenced)
+                   for j, (tr, e) in enumerate(zip(traces, eods)) if j != cl.medoid]
+        seeds, medoid_seed, cluster = cl.seeds, cl.medoid_failure.rollout.seed, spec.cluster
         base = cur.draft
         progress = len(cl.medoid_failure.rollout.milestones_reached)
         versions = [{"version": "v0", "harness": cur.ref or "bare", "successes": 0, "episodes": len(seeds),
@@ -190,13 +191,13 @@ class Evolution:
         for _ in range(self.cfg.max_depth):
             cands = self._candidates(spec, base, medoid, members, succ_traces)
             tried += len(cands)
-            v = self.validate(task, round_, spec.cluster, base, cands, medoid_seed, progress)
+            v = self.validate(task, round_, cluster, base, cands, medoid_seed, progress)
             pick = v.found or v.step
             if pick is None or v.rollout is None:
                 break
             stack.append(pick)
             base = pick.apply(base)
-            reg = self._rollouts(self._keys(task, seeds, v.ref, "regress"), f"r{round_} {spec.cluster} regress", round_)
+            reg = self._rollouts(self._keys(task, seeds, v.ref, "regress"), f"r{round_} {cluster} regress", round_)
             s_, n_ = count(reg)
             version = {"version": f"v{len(versions)}", "harness": v.ref, "successes": s_, "episodes": n_,
                        "medoid_milestones": v.progress, "validated": v.found is not None}
@@ -207,15 +208,15 @@ class Evolution:
             progress = v.progress
             tr = self.store.trace(v.rollout)
             eod = t_eod(tr, index, self.cfg.eod)
-            spec = repair_spec(f"{spec.cluster}/{version['version']}", v.rollout.key,
+            spec = repair_spec(f"{cluster}/{version['version']}", v.rollout.key,
                                self._case(tr, eod, v.rollout.first_missing or "<none>", base), [])
             version["diagnosis"] = spec.to_dict()
             if not spec.repairable:
                 break
-            medoid, members = ReplayCase(tr, eod.step), []
+            medoid, members = ReplayCase(tr, eod.step, eod.referenced), []
         self.store.record("cluster_versions", {"suite": self.cfg.suite, "task": task, "round": round_,
-                                               "cluster": spec.cluster, "versions": versions, "tried": tried},
-                          ident=spec.cluster)
+                                               "cluster": cluster, "versions": versions, "tried": tried},
+                          ident=cluster)
         validated = bool(stack) and versions[-1].get("validated", False)
         return record, stack if validated else []
 
@@ -310,6 +311,7 @@ class Evolution:
         validation = {"gate": verdict.to_dict(), "split": self.store.split_manifest(self.cfg.suite, task)}
         admitted = self.registry.publish(merged, parent=cur.ref, evidence=evidence, validation=validation)
         self.registry.pin(f"{self.cfg.suite}/{task}", admitted)
+        self._keep_package(admitted)
         self.store.record("admitted", {"suite": self.cfg.suite, "task": task, "round": round_, "ref": admitted,
                                        "parent": cur.ref or "bare", "verdict": verdict.to_dict(),
                                        "draft": _draft_to(merged), "patches": [p.to_dict() for p in patches]})
@@ -320,6 +322,15 @@ class Evolution:
             if not r.success and round_ < self.cfg.rounds:
                 self.store.move_to_dev(self.cfg.suite, task, r.seed,
                                        f"held-out failure of {admitted} (round {round_}) feeds round {round_ + 1}")
+
+    def _keep_package(self, ref: str) -> None:
+        """A copy of an admitted version (manifest included) under <store>/harness/<ref>/, so it can be
+        evaluated on another stack (`zetta eval --harness-dir`) after this one is gone."""
+        assert self.registry is not None
+        out = self.store.root / "harness" / ref
+        for rel, data in self.registry.files(ref).items():
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            (out / rel).write_bytes(data)
 
     def final_eval(self, task: str) -> None:
         """Held-out success of the bare policy and the final harness on the final held-out seeds."""

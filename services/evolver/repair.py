@@ -121,19 +121,26 @@ class Candidate:
 
 @dataclass(frozen=True)
 class ReplayCase:
-    """A failure to replay: its trace and t_EOD step."""
+    """A failure to replay: its trace, t_EOD step and whether t_EOD was located against I_succ."""
 
     trace: Trace
     t_eod: int
+    referenced: bool = True
+
+    def catches(self, step: int | None, window: int) -> bool:
+        """Whether a critic firing at ``step`` catches this failure (see diagnose._near)."""
+        if step is None:
+            return False
+        return abs(step - self.t_eod) <= window if self.referenced else step <= self.t_eod + window
 
 
 def score_critic(fn: Any, params: Mapping[str, float], medoid: ReplayCase,
                  members: Sequence[ReplayCase], successes: Sequence[Trace], window: int) -> tuple[int, float, float] | None:
     """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD."""
     fire = first_fire(medoid.trace, fn, params)
-    if fire is None or abs(fire - medoid.t_eod) > window:
+    if fire is None or not medoid.catches(fire, window):
         return None
-    caught = sum(1 for m in members if (s := first_fire(m.trace, fn, params)) is not None and abs(s - m.t_eod) <= window)
+    caught = sum(1 for m in members if m.catches(first_fire(m.trace, fn, params), window))
     fp = sum(1 for t in successes if first_fire(t, fn, params) is not None)
     return fire, (1 + caught) / (1 + len(members)), fp / len(successes) if successes else 0.0
 

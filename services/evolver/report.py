@@ -73,12 +73,13 @@ def _plot_final(finals: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def interventions(store: RolloutStore) -> tuple[dict[str, tuple[int, int]], Counter[str]]:
-    """Per harness (policy actions, recovery actions), and interventions by kind over all rollouts."""
+def interventions(store: RolloutStore, harnesses: set[str]) -> tuple[dict[str, tuple[int, int]], Counter[str]]:
+    """For the given harness versions: (policy actions, recovery actions) each, and their
+    interventions by kind, over every rollout they ran."""
     shares: dict[str, tuple[int, int]] = {}
     kinds: Counter[str] = Counter()
     for r in store.query():
-        if not r.harness:
+        if r.harness not in harnesses:
             continue
         p, q = shares.get(r.harness, (0, 0))
         shares[r.harness] = (p + r.policy_steps, q + r.recovery_steps)
@@ -140,13 +141,18 @@ def write_report(store: RolloutStore, out: Path, title: str, wall_s: float | Non
             tried = f"; {c['tried']} candidates tried" if "tried" in c else ""
             lines.append(f"- {c['cluster']}: {pts}{tried}")
         lines += ["", "![versions](versions.png)", ""]
-    shares, kinds = interventions(store)
-    if shares:
-        lines += ["## Intervention shares", "", "| harness | policy actions | recovery actions | recovery share |",
-                  "|---|---|---|---|"]
+    final_refs = {a["ref"] for a in admitted} | {f["harness"] for f in finals if f["harness"] != "bare"}
+    shares, kinds = interventions(store, final_refs)
+    candidates = {r.harness for r in store.query() if r.harness and r.harness not in final_refs}
+    if shares or candidates:
+        lines += ["## Intervention shares", "",
+                  "Actions taken by the policy vs by recoveries with each admitted or evaluated harness, over all "
+                  "its rollouts (a success that recoveries carried shows here).", "",
+                  "| harness | policy actions | recovery actions | recovery share |", "|---|---|---|---|"]
         for h, (p, q) in sorted(shares.items()):
             lines.append(f"| {h} | {p} | {q} | {q / max(p + q, 1):.1%} |")
-        lines += ["", "Interventions by kind: " + (", ".join(f"{k} {n}" for k, n in kinds.most_common()) or "none"), ""]
+        lines += ["", "Interventions by kind: " + (", ".join(f"{k} {n}" for k, n in kinds.most_common()) or "none"),
+                  "", f"Candidate harnesses run during validation and gating: {len(candidates)}.", ""]
     if gates:
         lines += ["## Gate decisions", ""]
         for g in gates:

@@ -36,9 +36,12 @@ def is_infrastructure(exc: ZettaError) -> bool:
     """Whether a failed call invalidates the attempt (rerun it) rather than reveal a mistake to report.
 
     FAILED_PRECONDITION only counts when the session was LOST with its worker; otherwise it is a
-    configuration error (no video directory, no critic service) that a rerun would only repeat."""
+    configuration error (no video directory, no critic service) that a rerun would only repeat.
+    NOT_FOUND counts for a session closed under the client (lease), not for an unknown harness."""
     if exc.code == grpc.StatusCode.FAILED_PRECONDITION:
         return " LOST " in f" {exc.details} "
+    if exc.code == grpc.StatusCode.NOT_FOUND:
+        return "harness" not in exc.details
     return exc.code in INFRA_CODES
 
 

@@ -17,7 +17,7 @@ import shutil
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -283,9 +283,6 @@ class RolloutStore:
     def trace(self, rollout: Rollout) -> Trace:
         """Load a rollout's trace."""
         return Trace.from_bytes((self.root / rollout.trace_path).read_bytes())
-
-    def __iter__(self) -> Iterator[Rollout]:
-        return iter(self.query())
 
     # ---- evolution bookkeeping ----------------------------------------------------------------
 

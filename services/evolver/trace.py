@@ -54,11 +54,6 @@ class Trace:
         """Milestones observed at some frame up to each frame, [K, len(M)] booleans."""
         return np.maximum.accumulate(self.mu, axis=0) if self.frames else self.mu
 
-    @property
-    def phi(self) -> dict[str, np.ndarray]:
-        """phi_t: the physical signals, by name."""
-        return {k: v for k, v in self.obs.items() if k.startswith("phi_")}
-
     def to_bytes(self) -> bytes:
         """The compressed npz of this trace."""
         arrays = {f"obs/{k}": v for k, v in self.obs.items()}

@@ -128,3 +128,17 @@ def test_repair_spec_reports_consistency_over_the_cluster() -> None:
     assert spec.layer == "critic" and spec.repairable
     assert abs(spec.consistency - 2 / 3) < 1e-9 and spec.detect_near == ("grasp_lost",)
     assert not repair_spec("x", "k", _case(m_star="<none>"), []).repairable
+
+
+def test_without_a_reference_an_earlier_firing_is_a_precursor() -> None:
+    """Against a located t_EOD a critic must fire within the window; against the unreferenced
+    fallback any firing up to it counts (the divergence cannot be placed more precisely)."""
+    located = _case(eod=EOD(20, 200, 9.0, 0, True), detectable={"non_approach": 40})
+    assert diagnose(located)[0] == "unexplained"
+    fallback = _case(eod=EOD(20, 200, float("inf"), 0, False), detectable={"non_approach": 40})
+    assert diagnose(fallback)[0] == "critic"
+    from services.evolver.repair import ReplayCase
+
+    tr = make_trace("miss")
+    assert not ReplayCase(tr, 200, True).catches(40, 10) and ReplayCase(tr, 200, False).catches(40, 10)
+    assert not ReplayCase(tr, 200, False).catches(260, 10) and not ReplayCase(tr, 200, False).catches(None, 10)

@@ -21,3 +21,6 @@ def test_configuration_errors_are_not_retried() -> None:
     assert not is_infrastructure(ZettaError(grpc.StatusCode.FAILED_PRECONDITION,
                                             "session s asked for a video but this env worker has no ZETTA_VIDEO_DIR"))
     assert not is_infrastructure(ZettaError(grpc.StatusCode.INVALID_ARGUMENT, "unknown task 'x'"))
+    assert not is_infrastructure(ZettaError(grpc.StatusCode.NOT_FOUND,
+                                            "env worker env-0: harness 'evolved-6@9' from the critic service: no such version"))
+    assert is_infrastructure(ZettaError(grpc.StatusCode.NOT_FOUND, "session(s) abc closed (lease expired)"))
