@@ -132,7 +132,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=3.0)
     p.add_argument("--loads", default="50,200,400,800")
     p.add_argument("--max-batch", type=int, default=32)
-    p.add_argument("--delay-ms", type=float, default=2.0)
+    p.add_argument("--delay-ms", type=float, default=5.0)
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     import torch

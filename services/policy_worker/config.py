@@ -32,9 +32,9 @@ class PolicyWorkerConfig:
                 env.fail(f"ZETTA_MODELS: unknown model {m!r}; known: {', '.join(sorted(FACTORIES))}")
         if not models:
             env.fail("ZETTA_MODELS is empty: name at least one model")
-        max_batch = env.int("ZETTA_MAX_BATCH", 32, minimum=1)
+        max_batch = env.int("ZETTA_MAX_BATCH", SchedulerConfig.max_batch, minimum=1)
         max_queue = env.int("ZETTA_MAX_QUEUE", 1024, minimum=1)
-        delay_ms = env.float("ZETTA_MAX_QUEUE_DELAY_MS", 2.0, minimum=0.0)
+        delay_ms = env.float("ZETTA_MAX_QUEUE_DELAY_MS", SchedulerConfig.max_queue_delay * 1000, minimum=0.0)
         workers = env.int("ZETTA_INFERENCE_THREADS", 1, minimum=1)
         host = env.str("ZETTA_BIND_HOST", "127.0.0.1")
         port = env.int("ZETTA_POLICY_WORKER_PORT", 50071, minimum=0, maximum=65535)

@@ -29,7 +29,7 @@ def _batch(b: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def policy() -> ZettaVLAPolicy:
-    return ZettaVLAPolicy()
+    return ZettaVLAPolicy()  # the default Gaussian start, seeded per request: rows compare exactly
 
 
 @pytest.fixture(scope="module")
@@ -76,20 +76,22 @@ def test_instruction_changes_the_action(policy) -> None:
 def test_w8a8_plugin_quantizes_only_prefix_mlp(instruction) -> None:
     from torch.ao.nn.quantized.dynamic import Linear as DynLinear
 
-    q = ZettaVLAPolicy(quantize="w8a8")
+    q = ZettaVLAPolicy(quantize="w8a8", noise="zero")
     assert q.quantized == ["encoder.prefix_mlp"]
     assert sum(isinstance(m, DynLinear) for m in q.model.encoder.prefix_mlp.modules()) == 3
     assert not any(type(m) is torch.nn.Linear for m in q.model.encoder.prefix_mlp.modules())
     assert not any(isinstance(m, DynLinear) for m in q.model.expert.modules())
     assert not any(isinstance(m, DynLinear) for m in q.model.encoder.obs.modules())
-    f = ZettaVLAPolicy()
+    f = ZettaVLAPolicy(noise="zero")
     batch = _batch(8)
     diff = np.abs(q.infer(batch, [instruction] * 8)[..., :6] - f.infer(batch, [instruction] * 8)[..., :6])
     assert diff.mean() < 0.1
 
 
-def test_split_matches_monolithic_and_honours_deadlines(instruction) -> None:
+def test_split_matches_monolithic_and_honours_deadlines(instruction, monkeypatch) -> None:
     from services.policy_worker.vla.split import MonolithicVLA, SplitVLA
+
+    monkeypatch.delenv("ZETTA_VLA_NOISE", raising=False)  # the spawned stage-2 process reads it too
 
     batch = _batch(6, seed=3)
     items = [{k: v[i] for k, v in batch.items()} for i in range(6)]
@@ -116,10 +118,11 @@ def test_split_matches_monolithic_and_honours_deadlines(instruction) -> None:
         assert np.allclose(x[:, :6], y[:, :6], atol=1e-4)
 
 
-def test_adapter_contract_with_our_model(policy, instruction) -> None:
+def test_adapter_contract_with_our_model(policy, instruction, monkeypatch) -> None:
     from services.policy_worker.vla.adapter import (
         AdapterContractError, ExternalPolicyAdapter, ZettaVLAAdapter, check_actions, register_adapter)
 
+    monkeypatch.delenv("ZETTA_VLA_NOISE", raising=False)  # the fixture's default start, row for row
     adapter = ZettaVLAAdapter()
     batch = _batch(3)
     assert np.allclose(adapter.infer(batch, [instruction] * 3), policy.infer(batch, [instruction] * 3))
@@ -172,6 +175,25 @@ def test_training_smoke(tmp_path, policy) -> None:
     assert meta["training"]["steps_done"] == 3
     p2 = ZettaVLAPolicy(tmp_path / "ck")
     assert p2.infer(_batch(2), [instr[0]] * 2).shape == (2, 8, 7)
+
+
+def test_gaussian_start_is_seeded_per_request(instruction) -> None:
+    """The same request draws the same x0 whatever else shares its batch and whichever policy
+    instance serves it; another observation or another policy seed draws another one."""
+    batch = _batch(3)
+    a, b = ZettaVLAPolicy(seed=5), ZettaVLAPolicy(seed=5)
+    assert a.noise == "gaussian"
+    first = a.infer(batch, [instruction] * 3)
+    assert np.array_equal(first, b.infer(batch, [instruction] * 3))
+    assert np.array_equal(first, a.infer(batch, [instruction] * 3)), "a repeated request replays"
+    seeds = a.request_seeds(batch, [instruction] * 3)
+    assert len(set(seeds.tolist())) == 3, "each observation its own draw"
+    other = ZettaVLAPolicy(seed=6).request_seeds(batch, [instruction] * 3)
+    assert not set(seeds.tolist()) & set(other.tolist())
+    zero = ZettaVLAPolicy(noise="zero").infer(batch, [instruction] * 3)
+    assert not np.array_equal(first[..., :6], zero[..., :6])
+    with pytest.raises(ValueError):
+        ZettaVLAPolicy(noise="uniform")
 
 
 def test_gripper_snaps_to_the_three_commands_the_gripper_knows() -> None:

@@ -56,6 +56,9 @@ class DataRecipe:
     execute_steps: int = 1
     #: Run only the first N episodes of :meth:`episodes` (0: all); a deterministic cut, unlike a time budget.
     max_episodes: int = 0
+    #: DAgger student's flow start ("zero" or "gaussian", see ZettaVLAPolicy); the shipped
+    #: checkpoint's DAgger round ran with "zero", the serving default before sampling was adopted.
+    student_noise: str = "zero"
 
     def episodes(self) -> list[tuple[int, int, int]]:
         """(task, seed, init_state_index), interleaved over tasks so a time budget cuts evenly."""
@@ -82,7 +85,7 @@ def _worker(recipe: dict, jobs, results) -> None:
         from services.policy_worker.vla.policy import ZettaVLAPolicy
 
         torch.set_num_threads(1)
-        student = ZettaVLAPolicy(recipe["dagger_checkpoint"])
+        student = ZettaVLAPolicy(recipe["dagger_checkpoint"], noise=recipe.get("student_noise", "zero"))
     names = [n for n, _ in STATE_INPUTS]
     student_names = [sp.name for sp in student.input_specs()] if student is not None else []
     execute = max(1, int(recipe.get("execute_steps", 1)))

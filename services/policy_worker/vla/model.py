@@ -8,8 +8,9 @@ the prefix MLP, so one scene can mean ten different tasks.
 Stage 2, the action expert (:class:`ActionExpert`): flow matching. Training regresses the
 velocity ``a - x0`` at ``x_t = t a + (1 - t) x0`` (x0 Gaussian); inference integrates the learned
 field from t = 0 to 1 in ``flow_steps`` Euler steps, conditioned on the prefix, producing an action
-chunk [chunk, 7] in normalized units. Sampling starts from x0 = 0 by default (the noise mode),
-which makes a rollout a deterministic function of its seed; ``noise="gaussian"`` samples.
+chunk [chunk, 7] in normalized units. :meth:`ActionExpert.forward` starts from the given x0
+(zeros when none is given); the served policy samples x0 ~ N(0, I) by default, because the zero
+start averages the teacher's modes (see ``ZettaVLAPolicy`` and docs/vla-results.md).
 
 The two stages share nothing but the prefix tensor, which is what lets the policy worker run them
 in two processes (see :mod:`services.policy_worker.vla.split`).

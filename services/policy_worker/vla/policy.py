@@ -6,6 +6,7 @@ load), ``config.json`` (architecture, training config, data recipe, instruction-
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -54,9 +55,20 @@ class ZettaVLAPolicy:
     """
 
     def __init__(self, checkpoint: str | os.PathLike = STATE_CHECKPOINT, name: str = "zetta-vla-state",
-                 quantize: str = "", device: str = "cpu", threads: int = 0) -> None:
+                 quantize: str = "", device: str = "cpu", threads: int = 0, noise: str | None = None,
+                 seed: int = 0) -> None:
         if threads:
             torch.set_num_threads(threads)
+        #: Flow-matching start x0: "gaussian" samples it, seeded per request from the request's own
+        #: inputs (state and instruction), so the same observation gets the same draw whichever
+        #: requests share its batch and an episode key replays bit for bit; "zero" starts every
+        #: chunk at the noise mean. The mean start averages the modes where the teacher switches
+        #: (descend vs. re-align above an object) and hovers between them; sampling commits to one
+        #: (docs/vla-results.md).
+        self.noise = noise or os.environ.get("ZETTA_VLA_NOISE", "gaussian")
+        if self.noise not in ("gaussian", "zero"):
+            raise ValueError(f"ZETTA_VLA_NOISE must be 'gaussian' or 'zero', got {self.noise!r}")
+        self.seed = seed
         self.model, self.meta, cache = load_checkpoint(checkpoint)
         self.device = torch.device(device)
         self.model.to(self.device)
@@ -84,13 +96,32 @@ class ZettaVLAPolicy:
         state = torch.from_numpy(state_vector(batch, STATE_INPUTS)).to(self.device)
         return self.model.encode(state, text)
 
+    def request_seeds(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
+        """One noise seed per request, a hash of its state inputs and instruction (int64 [B])."""
+        names = PROPRIO_INPUTS if self.cfg.image_size else STATE_INPUTS
+        state = np.ascontiguousarray(state_vector(batch, names), dtype=np.float32)
+        out = np.empty(len(instructions), np.int64)
+        for i, text in enumerate(instructions):
+            digest = hashlib.blake2b(state[i].tobytes(), digest_size=8, key=self.seed.to_bytes(8, "little"))
+            digest.update(text.encode())
+            out[i] = int.from_bytes(digest.digest(), "little") >> 1
+        return out
+
+    def start_noise(self, seeds: np.ndarray) -> torch.Tensor | None:
+        """x0 of the flow for each request: per-seed Gaussian draws, or None for the mean start."""
+        if self.noise != "gaussian":
+            return None
+        shape = (self.cfg.chunk, self.cfg.action_dim)
+        draws = [torch.randn(shape, generator=torch.Generator().manual_seed(int(s))) for s in seeds]
+        return torch.stack(draws).to(self.device)
+
     @torch.inference_mode()
-    def act_batch(self, prefix: torch.Tensor) -> np.ndarray:
-        """Stage 2: actions [B, chunk, 7] float32."""
-        return self.model.act(prefix.to(self.device)).float().cpu().numpy()
+    def act_batch(self, prefix: torch.Tensor, seeds: np.ndarray) -> np.ndarray:
+        """Stage 2: actions [B, chunk, 7] float32, x0 drawn from ``seeds`` (:meth:`request_seeds`)."""
+        return self.model.act(prefix.to(self.device), self.start_noise(seeds)).float().cpu().numpy()
 
     def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        return self.act_batch(self.encode_batch(batch, instructions))
+        return self.act_batch(self.encode_batch(batch, instructions), self.request_seeds(batch, instructions))
 
 
 def _threads() -> int:

@@ -47,7 +47,7 @@ class _SlotRing:
 
 
 def _ae_main(checkpoint: str, quantize: str, device: str, threads: int, prefixes: torch.Tensor,
-             actions: torch.Tensor, conn, cfg: SchedulerConfig) -> None:
+             seeds: torch.Tensor, actions: torch.Tensor, conn, cfg: SchedulerConfig) -> None:
     """The action-expert process: its own event loop and BatchScheduler over ring slots."""
     torch.set_num_threads(max(1, threads))
     from services.policy_worker.vla.policy import ZettaVLAPolicy
@@ -58,7 +58,8 @@ def _ae_main(checkpoint: str, quantize: str, device: str, threads: int, prefixes
     def run_batch(_model: str, inputs: dict[str, np.ndarray], _instr: list[str]) -> np.ndarray:
         slots = torch.from_numpy(inputs["slot"].astype(np.int64)).to(prefixes.device)
         with torch.inference_mode():
-            out = policy.model.act(prefixes.index_select(0, slots))
+            noise = policy.start_noise(seeds.index_select(0, slots.cpu()).numpy())
+            out = policy.model.act(prefixes.index_select(0, slots), noise)
             actions.index_copy_(0, slots, out.to(actions.dtype))
         if actions.is_cuda:
             torch.cuda.synchronize()
@@ -119,6 +120,8 @@ class SplitVLA:
         dev = torch.device(device)
         self.prefixes = torch.zeros(slots, cfg.prefix_tokens, cfg.width, device=dev)
         self.actions = torch.zeros(slots, cfg.chunk, cfg.action_dim, device=dev)
+        #: Each request's noise seed (ZettaVLAPolicy.request_seeds), in host shared memory.
+        self.seeds = torch.zeros(slots, dtype=torch.int64).share_memory_()
         if dev.type == "cpu":
             self.prefixes.share_memory_()
             self.actions.share_memory_()
@@ -128,7 +131,8 @@ class SplitVLA:
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_ae_main,
-            args=(checkpoint, quantize, device, threads, self.prefixes, self.actions, child, ae or SchedulerConfig()),
+            args=(checkpoint, quantize, device, threads, self.prefixes, self.seeds, self.actions, child,
+                  ae or SchedulerConfig()),
             daemon=True,
         )
         self._proc.start()
@@ -148,6 +152,7 @@ class SplitVLA:
         slots = self._ring.take(len(prefix))
         idx = torch.tensor(slots, device=self.prefixes.device)
         self.prefixes.index_copy_(0, idx, prefix.to(self.prefixes.dtype))
+        self.seeds[slots] = torch.from_numpy(self.policy.request_seeds(inputs, instructions))
         if self.prefixes.is_cuda:
             torch.cuda.synchronize()
         return np.asarray(slots, np.int64)

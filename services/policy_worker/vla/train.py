@@ -173,11 +173,11 @@ class PipelineConfig:
     action_noise: float = 0.15
     steps: int = 3000
     lr: float = 1e-3
-    dagger_rounds: int = 2
+    dagger_rounds: int = 1
     dagger_episodes: int = 100
     beta: float = 0.2
     execute_steps: int = 2
-    finetune_steps: int = 3000
+    finetune_steps: int = 2000
     finetune_lr: float = 5e-4
 
 
