@@ -76,7 +76,7 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     assert text.startswith("# keep me") and text.rstrip().endswith("## also kept") and "\nold\n" not in text
     assert "| stack | 2 | 4 |" in text and "Scale-out model" in text
     assert {p.name for p in written} == {"throughput.md", "throughput-episodes.png", "throughput-steps.png",
-                                         "throughput-latency.png"}
+                                         "throughput-latency.png", "throughput-cpu.png"}
     assert all(p.stat().st_size > 1000 for p in written)
     json.dumps(res.to_json(), default=float)  # what --json writes
 
@@ -97,6 +97,11 @@ def test_targets_judge_the_issue_thresholds() -> None:
     res.rows[-1].episodes = [bs.Episode(i, False, 100, 8.1) for i in range(100)]  # growth 2.03x
     res.rows[-1].wall_s = 13.0  # 769 steps/s = 77%
     assert [ok for _, _, ok in bench_report.targets(res)] == [True, False, False]
+    res.rows[-1].wall_s = 10.0  # 1000 steps/s, as fast as the limit...
+    res.rows[1].usage = bs.Usage(100.0, 50.0, None, 1.0, cpu_s=50.0)  # ...but the limit needs 5 CPU ms a step
+    res.rows[-1].usage = bs.Usage(100.0, 90.0, None, 1.0, cpu_s=70.0)  # and the stack 7: 71%, not met
+    (_, measured, ok) = bench_report.targets(res)[1]
+    assert ok is False and "CPU cost per step 71%" in measured
 
 
 @pytest.mark.slow

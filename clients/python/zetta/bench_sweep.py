@@ -3,9 +3,9 @@
 Every figure of docs/throughput.md comes from one invocation, so that the rows compare under the
 same load (the machine may be shared; the 1-minute load average is recorded with every row).
 All rows run the same episodes: LIBERO-Goal ``--task`` (state only), episode i from init state
-i % 50 and seed i // 50 (see :func:`episode_key`), a fixed step budget ``--max-steps`` (episode length depends on success, so
-steps/s is reported next to episodes/min), the same policy (``--model``, default the shipped
-``zetta-vla-state``), whose action chunks are executed whole.
+i % 50 and seed i // 50 (see :func:`episode_key`), a fixed step budget ``--max-steps`` (episode
+length depends on success, so steps/s is reported next to episodes/min), the same policy
+(``--model``, default the shipped ``zetta-vla-state``), whose action chunks are executed whole.
 
 rows
   naive        one process, episodes one after another, a LIBERO env built from scratch for every
@@ -13,7 +13,7 @@ rows
                on a batch of one; half of its episodes run first, half last, so drifting load
                weighs on both ends of the run
   naive-fast   the same loop on our fast step path (a reference row: what the step path alone gives)
-  stack        ``LocalStack`` (Redis, gateway, env workers, one policy worker) on loopback;
+  stack        ``LocalStack`` (Redis, gateway, critic service, env workers, one policy worker) on loopback;
                ``c`` lanes each run episodes back to back on one session with ``run_episode``
   stack-off    the same stack with batching (``ZETTA_MAX_BATCH=1``) and resource sharing
                (``ZETTA_RESOURCE_SHARING=false``: every session compiles its own scene) off
@@ -22,9 +22,11 @@ rows
   limit-obs    the same with the slot's step (fast path plus the canonical observation,
                milestones and signals that a policy and the critics read)
 
-    zetta bench rollout                                     # the full sweep (about 10 minutes)
-    zetta bench rollout --concurrency 1,4 --episodes 4 --max-steps 20 --naive-episodes 2
-    zetta bench rollout --write-docs                        # also docs/throughput.md + PNG plots
+    zetta bench rollout                          # the full sweep (10-25 minutes on 2 shared cores)
+    zetta bench rollout --concurrency 1,4 --baseline-concurrency 2 --episodes 4 --max-steps 16 \
+        --naive-episodes 2 --naive-fast-episodes 2 --limit-seconds 2     # a quick look
+    zetta bench rollout --write-docs             # also docs/throughput.md + PNG plots
+    zetta bench rollout --from-json run.json --write-docs   # re-render a run saved with --json
 """
 
 from __future__ import annotations
@@ -539,15 +541,17 @@ async def create_sessions(gw: Any, n: int, config: dict[str, Any], batch: int, l
 
     t = time.perf_counter()
     infos: list[Any] = []
+    warm = 0.0
     for k in range(0, n, batch):
         group = await gw.create_sessions(env_family="libero", n=min(batch, n - k), env_config=config, keepalive=False)
         infos += group.infos
+        w = time.perf_counter()  # warmed a batch at a time too: 64 first resets at once can starve heartbeats
+        await group.run_episode(task=config["task"], seed=0, init_state_index=0, max_steps=min(config["max_steps"], 8))
+        warm += time.perf_counter() - w
     sessions = SessionGroup(gw, infos)
     sessions.start_keepalive()
-    created = time.perf_counter() - t
-    t = time.perf_counter()
-    await sessions.run_episode(task=config["task"], seed=0, init_state_index=0, max_steps=min(config["max_steps"], 8))
-    log(f"  {n} sessions created in {created:.1f} s, warmed up in {time.perf_counter() - t:.1f} s (not counted)")
+    log(f"  {n} sessions created in {time.perf_counter() - t - warm:.1f} s and warmed up in {warm:.1f} s "
+        "(one 8-step episode each; not counted)")
     return sessions
 
 
@@ -617,7 +621,7 @@ def run_stack(spec: StackSpec, concurrency: Sequence[int], episodes: int, task: 
     workdir = Path(tempfile.mkdtemp(prefix="zetta-bench-"))
     env = {"ZETTA_LOG_LEVEL": "WARNING", **spec.extra_env}
     stack = LocalStack(env_workers=spec.env_workers, slots=spec.slots, policy_workers=1, families=("libero",),
-                       models=(spec.model,), workdir=workdir, extra_env=env, heartbeat_timeout_ms=15_000)
+                       models=(spec.model,), workdir=workdir, extra_env=env, heartbeat_timeout_ms=30_000)
     t = time.perf_counter()
     with stack:
         log(f"{spec.mode}: {spec.env_workers} env workers x {spec.slots} slots + 1 policy worker ({spec.model}) "
@@ -718,6 +722,18 @@ class Results:
         out["rows"] = [r.to_json() for r in self.rows]
         return out
 
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "Results":
+        """A run written by ``--json``, to render its report again."""
+        rows = []
+        for r in data["rows"]:
+            usage = Usage(**r["usage"]) if r.get("usage") else None
+            rows.append(Row(r["mode"], r["concurrency"], [Episode(**e) for e in r["episodes"]], r["wall_s"], usage,
+                            r.get("batch_mean"), r.get("load", 0.0), r.get("note", "")))
+        fields = {k: data[k] for k in ("args", "machine", "started", "load_start", "load_end", "policy_ops", "chunk",
+                                       "gateway", "failures", "elapsed_s") if k in data}
+        return cls(**fields, rows=rows, inference_ms={int(k): v for k, v in data.get("inference_ms", {}).items()})
+
 
 def machine() -> str:
     """One line about the machine."""
@@ -800,6 +816,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--profile-concurrency", type=int, default=0,
                    help="the point --profile records (default 16 if swept, else the largest)")
     p.add_argument("--json", default="", help="also write every measurement to this JSON file")
+    p.add_argument("--from-json", default="", metavar="FILE",
+                   help="measure nothing: print (and with --write-docs write) the report of a run saved with --json")
     p.add_argument("--write-docs", action="store_true", help="write docs/throughput.md and docs/throughput-*.png")
     p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/)")
     args = p.parse_args(argv)
@@ -824,11 +842,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", flush=True)
 
-    log(f"{machine()}; load average {load_average():.2f}; task {SUITE}/{args.task}, {args.max_steps} steps per "
-        f"episode, model {args.model}, concurrency {args.concurrency}, baseline {args.baseline_concurrency}")
-    res = sweep(args, log)
-    res.elapsed_s = time.perf_counter() - t0
-    command = "zetta bench rollout " + " ".join(argv[1:])
+    if args.from_json:
+        data = json.loads(Path(args.from_json).read_text())
+        res = Results.from_json(data)
+        command = data.get("command", "zetta bench rollout")
+    else:
+        log(f"{machine()}; load average {load_average():.2f}; task {SUITE}/{args.task}, {args.max_steps} steps per "
+            f"episode, model {args.model}, concurrency {args.concurrency}, baseline {args.baseline_concurrency}")
+        res = sweep(args, log)
+        res.elapsed_s = time.perf_counter() - t0
+        command = ("zetta bench rollout " + " ".join(a for a in argv[1:])).strip()
     print()
     print(bench_report.text_table(res))
     print()
@@ -836,10 +859,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     for failure in res.failures:
         print(f"FAILED   {failure}")
     if args.json:
-        Path(args.json).write_text(json.dumps(res.to_json(), indent=1, default=float))
+        Path(args.json).write_text(json.dumps({**res.to_json(), "command": command}, indent=1, default=float))
     if args.write_docs:
         docs = Path(args.docs_dir) if args.docs_dir else Path(__file__).resolve().parents[3] / "docs"
-        for path in bench_report.write_docs(res, docs, command.strip()):
+        for path in bench_report.write_docs(res, docs, command):
             print(f"wrote {path}")
     return 0
 

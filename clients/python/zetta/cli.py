@@ -6,7 +6,7 @@
   zetta demo --gateway ADDR    run the demo against a stack that is already up
   zetta workers|sessions --gateway ADDR
   zetta train [--variant state|image] [--data DEMOS.npz ...]
-                               collect oracle demonstrations on LIBERO-Goal and train the Zetta VLA
+                               oracle demos (clean + DART) on LIBERO-Goal, train the Zetta VLA, DAgger
   zetta eval-policy [--model zetta-vla-state] [--suites ...] [--seeds N]
                                closed-loop success per task with Wilson 95% intervals
   zetta bench rollout [--concurrency 1,8,16,32,64] [--episodes N] [--max-steps N] [--write-docs]
