@@ -274,16 +274,18 @@ ROLLOUT_ROWS = [
 
 EVOLUTION_ROWS = [
     Row("Evolution progress", [
-        Panel("Success per round", "Success rate of each evolution round's harness on dev and held-out seeds. "
-              "Exported by the evolver (issue #6); empty until it runs.",
-              [Query("max by (round, split) (zetta_evolver_round_success_ratio)", "round {{round}} {{split}}",
+        Panel("Success per round", "Success rate per task, round and arm (dev, heldout_bare, heldout_final) of "
+              "the running evolution jobs (services/evolver); empty until a job runs.",
+              [Query("max by (task, round, arm) (zetta_evolver_success_ratio)", "{{task}} round {{round}} {{arm}}",
                      instant=True)], kind="barchart", unit="percentunit", width=24, min=0, max=1),
-        Panel("Success over time", "The latest round's success rate on each split.",
-              [Query("max by (split) (zetta_evolver_round_success_ratio)", "{{split}}")], unit="percentunit",
+        Panel("Phase progress", "Finished share of the current phase's episodes, per evolution job.",
+              [Query("max by (job_id) (zetta_evolver_phase_progress_ratio)", "{{job_id}}")], unit="percentunit",
               width=12, min=0, max=1),
         Panel("Rollout episodes per minute", "Episodes the evolution loop's rollouts finish (all env workers).",
               [Query("sum(family_outcome:zetta_env_episodes_completed:rate1m) * 60", "episodes/min")],
               unit="short", width=12),
+        Panel("Admitted harness versions", "Versions each evolution job's gates admitted so far.",
+              [Query("sum(zetta_evolver_admitted_versions)", "admitted")], unit="short", width=24),
     ]),
 ]
 

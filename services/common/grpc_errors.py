@@ -91,3 +91,34 @@ def error_boundary(method):  # type: ignore[no-untyped-def]
             await exc.abort(context)
 
     return wrapper
+
+
+def timed_unary(service: str, method: str, on_code=None):  # type: ignore[no-untyped-def]
+    """Decorator for unary async servicer methods: the hop latency (zetta_hop_latency_seconds) of
+    every call, the status code handed to ``on_code`` (a per-service request counter), and the
+    :func:`error_boundary` around it, so every service records its hop the same way."""
+    import functools
+    import time
+
+    from services.common.metrics import HOP_LATENCY
+
+    hist = HOP_LATENCY.labels(service, method)
+
+    def deco(fn):  # type: ignore[no-untyped-def]
+        @functools.wraps(fn)
+        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+            start = time.perf_counter()
+            code = "OK"
+            try:
+                return await fn(self, request, context)
+            except ServiceError as exc:
+                code = exc.code.name
+                raise
+            finally:
+                hist.observe(time.perf_counter() - start)
+                if on_code is not None:
+                    on_code(method, code)
+
+        return error_boundary(wrapper)
+
+    return deco

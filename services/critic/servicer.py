@@ -22,7 +22,7 @@ import grpc
 import numpy as np
 
 from services.common import grpc_errors as ge
-from services.common.grpc_errors import ServiceError, error_boundary
+from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from services.critic import metrics
 from services.critic.config import CriticConfig
@@ -48,27 +48,8 @@ _FILE_CHANGE = {
 
 
 def _timed(method: str):  # type: ignore[no-untyped-def]
-    """Record the hop latency and the status code of every unary call."""
-
-    def deco(fn):  # type: ignore[no-untyped-def]
-        hist = HOP_LATENCY.labels("critic", method)
-
-        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
-            start = time.perf_counter()
-            code = "OK"
-            try:
-                return await fn(self, request, context)
-            except ServiceError as exc:
-                code = exc.code.name
-                raise
-            finally:
-                hist.observe(time.perf_counter() - start)
-                metrics.REQUESTS.labels(method, code).inc()
-
-        wrapper.__name__ = fn.__name__
-        return error_boundary(wrapper)
-
-    return deco
+    """Hop latency and status code of every unary call (services/common/grpc_errors.timed_unary)."""
+    return timed_unary("critic", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
 
 
 def _json_or_empty(value: Any) -> str:

@@ -63,22 +63,22 @@ class EvolverServicer(evolver_pb2_grpc.EvolverServiceServicer):
         except JobError as exc:
             raise ge.ServiceError(_CODES[exc.kind], str(exc)) from None
 
-    @ge.error_boundary
+    @ge.timed_unary("evolver", "StartEvolution")
     async def StartEvolution(self, request, context) -> evolver_pb2.StartEvolutionResponse:  # noqa: N802
         job = await self._call(self.jobs.start, request.job_id, _spec_dict(request.spec))
         return evolver_pb2.StartEvolutionResponse(status=await asyncio.to_thread(status_of, job))
 
-    @ge.error_boundary
+    @ge.timed_unary("evolver", "GetEvolution")
     async def GetEvolution(self, request, context) -> evolver_pb2.GetEvolutionResponse:  # noqa: N802
         job = await self._call(self.jobs.get, request.job_id)
         return evolver_pb2.GetEvolutionResponse(status=await asyncio.to_thread(status_of, job))
 
-    @ge.error_boundary
+    @ge.timed_unary("evolver", "ListEvolutions")
     async def ListEvolutions(self, request, context) -> evolver_pb2.ListEvolutionsResponse:  # noqa: N802
         jobs = list(self.jobs.jobs.values())
         return evolver_pb2.ListEvolutionsResponse(jobs=[await asyncio.to_thread(status_of, j) for j in jobs])
 
-    @ge.error_boundary
+    @ge.timed_unary("evolver", "CancelEvolution")
     async def CancelEvolution(self, request, context) -> evolver_pb2.CancelEvolutionResponse:  # noqa: N802
         job = await self._call(self.jobs.cancel, request.job_id)
         return evolver_pb2.CancelEvolutionResponse(status=await asyncio.to_thread(status_of, job))

@@ -72,7 +72,7 @@ def test_metrics_served_where_compose_says(compose_run: ComposeRun) -> None:
     """Every Zetta service serves /metrics on the port its compose environment names."""
     stack = compose_run.stack
     services = stack.zetta_services()
-    assert sorted(services) == ["critic", "env-worker-1", "env-worker-2", "gateway", "policy-worker"]
+    assert sorted(services) == ["critic", "env-worker-1", "env-worker-2", "evolver", "gateway", "policy-worker"]
     for name in services:
         text = fetch(stack.metrics_url(name))
         assert "zetta_hop_latency_seconds" in text, name

@@ -111,7 +111,7 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
                  for s in r.list_services_response.service]
         assert "zetta.v1.EvolverService" in names
     text = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5).read().decode()
-    assert 'zetta_evolver_success_ratio{arm="dev",job="j1"' in text
+    assert 'zetta_evolver_success_ratio{arm="dev",job_id="j1"' in text
     assert 'zetta_evolver_jobs{state="succeeded"} 1.0' in text
     assert "zetta_evolver_episodes_total" in text
 
