@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.zetta-installed
 
-.PHONY: setup proto demo up test test-slow test-all bench bench-policy bench-sim lint clean
+.PHONY: setup proto demo up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim lint clean
 
 setup: $(STAMP) proto $(VENV)/.zetta-validators
 
@@ -46,6 +46,12 @@ bench: setup
 	$(PY) bench/bench_rollout.py
 
 # The Zetta VLA: batch throughput, split vs monolithic under a 200 ms SLO, W8A8 vs float.
+bench-sweep: setup
+	$(VENV)/bin/zetta bench rollout
+
+bench-harness: setup
+	$(PY) bench/bench_harness.py
+
 bench-policy: setup
 	$(PY) bench/bench_policy.py
 
