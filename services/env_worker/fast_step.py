@@ -181,6 +181,7 @@ class FastStepper:
         self._gripper = robot.gripper if robot.has_gripper else None
         self._sim: Any = None
         self._contact_masks: dict[tuple[Any, ...], np.ndarray] = {}
+        self._contact_geoms_of: dict[int, tuple[Any, tuple[str, ...]]] = {}
         self._kernel = self._load_kernel() if compiled else None
         if compiled and self._kernel is None:
             self.reason = "compiled kernel unavailable; Python substeps"
@@ -249,6 +250,7 @@ class FastStepper:
         self._full_mass = np.zeros((m.nv, m.nv))
         self._substeps = int(round(env.control_timestep / env.model_timestep))
         self._contact_masks.clear()
+        self._contact_geoms_of.clear()
         self._geom_names = [sim.model.geom_id2name(g) for g in range(m.ngeom)]
 
     # -- the step -------------------------------------------------------------------------------
@@ -454,11 +456,11 @@ class FastStepper:
         if type(geoms_1) is str:
             geoms_1 = [geoms_1]
         elif isinstance(geoms_1, MujocoModel):
-            geoms_1 = geoms_1.contact_geoms
+            geoms_1 = self._model_geoms(geoms_1)
         if type(geoms_2) is str:
             geoms_2 = [geoms_2]
         elif isinstance(geoms_2, MujocoModel):
-            geoms_2 = geoms_2.contact_geoms
+            geoms_2 = self._model_geoms(geoms_2)
         d = self.env.sim.data._data
         if d is not self._d:
             self._bind()
@@ -471,6 +473,15 @@ class FastStepper:
             return bool(np.any(in1[g1] | in1[g2]))
         in2 = self._mask(geoms_2)
         return bool(np.any((in1[g1] & in2[g2]) | (in2[g1] & in1[g2])))
+
+    def _model_geoms(self, model: Any) -> tuple[str, ...]:
+        """A robosuite model's contact geom names; its ``contact_geoms`` property rebuilds the
+        prefixed list on every access, and the names never change after the model is built."""
+        found = self._contact_geoms_of.get(id(model))
+        if found is None or found[0] is not model:
+            found = (model, tuple(model.contact_geoms))
+            self._contact_geoms_of[id(model)] = found
+        return found[1]
 
     def _mask(self, geoms: Sequence[Any]) -> np.ndarray:
         try:
