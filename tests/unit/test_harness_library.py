@@ -376,3 +376,31 @@ def test_regrasp_closes_where_the_descent_settles_just_short() -> None:
     toy = Toy(eef=(0.1, 0.1, 1.1), lowest=0.925)  # 5 mm over the grip point: within 2.5 x tolerance
     rec, _ = drive("regrasp", toy)
     assert rec.status == DONE and toy.grasp
+
+
+class Wall(Toy):
+    """The toy with a wall at x = ``wall``: the hand cannot pass it."""
+
+    def __init__(self, *args, wall: float, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.wall = wall
+
+    def apply(self, action: np.ndarray) -> None:
+        action = action.copy()
+        action[0] = min(action[0], max(0.0, (self.wall - self.eef[0]) / 0.05))
+        super().apply(action)
+
+
+def _held(toy: Toy) -> Toy:
+    toy.grasp, toy.aperture = True, 0.03
+    return toy
+
+
+def test_fine_alignment_blocked_over_the_target_is_done_and_short_of_it_fails() -> None:
+    lifted = OBJ + [0, 0, 0.12, 0, 0, 0.12]
+    over = _held(Wall(eef=t.box_center(lifted), obj=lifted, wall=0.22))  # centre can reach x = 0.24 > BOWL[0] + inset
+    rec, _ = drive("fine_alignment", over)
+    assert rec.status == DONE and BOWL[0] < t.box_center(over.obj)[0] < BOWL[3]
+    short = _held(Wall(eef=t.box_center(lifted), obj=lifted, wall=0.10))
+    rec, _ = drive("fine_alignment", short)
+    assert rec.status == FAILED and "blocked short" in rec.reason

@@ -311,7 +311,7 @@ def test_the_example_package_builds() -> None:
 
     rt = HarnessRuntime(load_package(ROOT / "examples" / "harnesses" / "libero-goal-pick-place"))
     assert {"approach", "retention", "placement", "critics.empty_carry"} <= {c.name for c in rt.critics}
-    assert set(rt.plans) == {"acquire", "place"}
+    assert set(rt.plans) == {"acquire", "place", "carry"}
 
 
 def test_reentry_clears_lists_evidence_that_blocks_every_handback() -> None:

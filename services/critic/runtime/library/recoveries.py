@@ -228,9 +228,16 @@ class Regrasp(Recovery):
 
 class FineAlignment(Recovery):
     """Keep the grasp and bring the held object over the live target with small arm motions:
-    its centre over the target's centre, its bottom ``clearance`` above the target's top."""
+    its centre over the target's centre, its bottom ``clearance`` above the target's top. When
+    the object stops getting closer for ``stall_steps`` steps (an arm against a joint limit or an
+    obstacle) it is done if the object's centre is already over the target's box (inset by
+    ``inset``), and fails otherwise instead of pushing on."""
 
     name = "fine_alignment"
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        self._errors: list[float] = []
 
     def act(self, w: Window) -> np.ndarray | None:
         now = w.now
@@ -247,6 +254,16 @@ class FineAlignment(Recovery):
         goal = np.array([tc[0], tc[1], target[5] + self.p["clearance"]])
         if np.linalg.norm(held[:2] - goal[:2]) < self.p["tolerance"] and abs(held[2] - goal[2]) < self.p["z_tolerance"]:
             self._finish(DONE)
+            return None
+        self._errors.append(float(np.linalg.norm(held - goal)))
+        n = int(self.p["stall_steps"])
+        if len(self._errors) > n and self._errors[-n - 1] - self._errors[-1] < self.p["stall_motion"]:
+            inset = self.p["inset"]
+            over = all(target[k] + inset <= center[k] <= target[3 + k] - inset for k in (0, 1))
+            if over and obj[2] >= target[5] - self.p["z_tolerance"]:
+                self._finish(DONE)
+            else:
+                self._finish(FAILED, "blocked short of the target")
             return None
         if held[2] < goal[2] - 0.02 and np.linalg.norm(held[:2] - goal[:2]) > self.p["tolerance"]:
             goal = np.array([held[0], held[1], goal[2]])  # rise before moving across
@@ -392,6 +409,9 @@ RECOVERIES: dict[str, RecoverySpec] = {
             "gain": _f(10.0, 1.0, 30.0, "action per metre of error"),
             "max_action": _f(0.4, 0.05, 1.0, "largest translational action"),
             "lost_steps": _i(3, 1, 20, "frames without the grasp before alignment gives up"),
+            "stall_steps": _i(15, 3, 100, "steps without getting closer that count as blocked"),
+            "stall_motion": _f(0.003, 0.0, 0.05, "how much closer (m) counts as progress"),
+            "inset": _f(0.01, -0.05, 0.1, "margin (m) inside the target box that counts as over it"),
         }, FineAlignment.__doc__ or ""),
         RecoverySpec("lower_until_supported_then_release", LowerUntilSupportedThenRelease, {
             "speed": _f(0.25, 0.05, 1.0, "largest downward action"),
