@@ -286,6 +286,14 @@ EVOLUTION_ROWS = [
               unit="short", width=12),
         Panel("Admitted harness versions", "Versions each evolution job's gates admitted so far.",
               [Query("sum(zetta_evolver_admitted_versions)", "admitted")], unit="short", width=24),
+        Panel("Recovery share of actions", "Share of the actions of finished harnessed episodes that recoveries "
+              "chose instead of the policy: a harness whose recoveries do all the work shows here.",
+              [Query("sum(rate(zetta_env_harness_actions_total{by=\"recovery\"}[$__rate_interval])) / "
+                     "sum(rate(zetta_env_harness_actions_total[$__rate_interval]))", "recovery share")],
+              unit="percentunit", width=12, min=0, max=1),
+        Panel("Interventions by kind", "Interventions of finished harnessed episodes per minute, by kind and outcome.",
+              [Query("sum by (kind, outcome) (rate(zetta_env_harness_interventions_total[$__rate_interval])) * 60",
+                     "{{kind}} {{outcome}}")], unit="short", width=12),
     ]),
 ]
 

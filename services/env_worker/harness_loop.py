@@ -24,6 +24,7 @@ import grpc
 import numpy as np
 
 from services.common import grpc_errors as ge
+from services.env_worker import metrics
 from services.critic.package import format as fmt
 from services.critic.package.errors import PackageRejected
 from services.critic.package.loader import load_files, unload
@@ -188,8 +189,11 @@ class SlotHarness:
         result.harness_intervention = self.decision.intervention_id
         result.recovery_actions = recovery_actions
         if ended:
-            self.finished = self.runtime.finish(success)
-            report_to_proto(self.finished, result.harness_report)
+            self.finished = report = self.runtime.finish(success)
+            report_to_proto(report, result.harness_report)
+            metrics.count_harness_episode(report.policy_actions, report.recovery_actions,
+                                          [(iv.kind, iv.outcome) for iv in report.interventions],
+                                          len(report.disabled_critics))
 
     def report(self) -> types_pb2.HarnessReport:
         """The episode's report so far (final once the episode ended)."""

@@ -23,3 +23,25 @@ FRAMES = Counter(
     "zetta_env_frames_rendered_total",
     "Camera frames rendered (one per camera per rendered state: observations and video frames).", ["camera"],
 )
+HARNESS_ACTIONS = Counter(
+    "zetta_env_harness_actions_total",
+    "Actions executed in harnessed episodes, by who chose them (policy or recovery); counted at episode end.",
+    ["by"],
+)
+HARNESS_INTERVENTIONS = Counter(
+    "zetta_env_harness_interventions_total", "Interventions of finished harnessed episodes, by kind and outcome.",
+    ["kind", "outcome"],
+)
+HARNESS_CRITICS_DISABLED = Counter(
+    "zetta_env_harness_critics_disabled_total", "Critics switched off mid-episode (raised, overran, bad output).",
+)
+
+
+def count_harness_episode(policy_actions: int, recovery_actions: int, interventions: list[tuple[str, str]],
+                          disabled_critics: int) -> None:
+    """Once per finished harnessed episode, so a dashboard shows how much the recoveries do."""
+    HARNESS_ACTIONS.labels("policy").inc(policy_actions)
+    HARNESS_ACTIONS.labels("recovery").inc(recovery_actions)
+    for kind, outcome in interventions:
+        HARNESS_INTERVENTIONS.labels(kind, outcome).inc()
+    HARNESS_CRITICS_DISABLED.inc(disabled_critics)

@@ -45,6 +45,8 @@ MAY_BE_EMPTY: dict[str, str] = {
     "Success per round": "the evolver exports success once an evolution job has finished a round",
     "Phase progress": "series appear per evolution job; the test traffic starts none",
     "Admitted harness versions": "series appear per evolution job; the test traffic starts none",
+    "Recovery share of actions": "the test traffic runs no harnessed episode",
+    "Interventions by kind": "the test traffic runs no harnessed episode",
 }
 #: Series Prometheus writes itself for every target.
 PROMETHEUS_SERIES = {"up", "scrape_duration_seconds", "scrape_samples_scraped"}

@@ -9,10 +9,12 @@ action shares per episode.
 from __future__ import annotations
 
 import asyncio
+import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from tests.conftest import LIFT
 from zetta import Gateway
@@ -77,6 +79,22 @@ def write_package(root: Path, critics: str = CRITICS) -> Path:
     return root
 
 
+def harness_counters(stack: LocalStack) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """The env workers' zetta_env_harness_* samples summed over workers, by (name, labels)."""
+    out: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
+    for name, svc in stack.services.items():
+        if not name.startswith("env-"):
+            continue
+        with urllib.request.urlopen(svc.metrics_url, timeout=5) as resp:
+            text = resp.read().decode()
+        for family in text_string_to_metric_families(text):
+            for sample in family.samples:
+                if sample.name.startswith("zetta_env_harness_") and sample.name.endswith("_total"):
+                    key = (sample.name, tuple(sorted(sample.labels.items())))
+                    out[key] = out.get(key, 0.0) + sample.value
+    return out
+
+
 MOVE = np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0, -1.0], np.float32)
 
 
@@ -103,8 +121,11 @@ async def test_recovery_actions_replace_the_clients_until_reentry(gw: Gateway, t
     await group.close()
 
 
-async def test_episode_report_with_action_shares_interventions_and_disabled_critics(gw: Gateway, tmp_path: Path) -> None:
+async def test_episode_report_with_action_shares_interventions_and_disabled_critics(
+    gw: Gateway, shared_stack: LocalStack, tmp_path: Path
+) -> None:
     pkg = write_package(tmp_path / "pkg")
+    before = harness_counters(shared_stack)
     group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 24})
     summary = (await group.run_episode(task="", seed=4, model="scripted-pick-place", execute_steps=2,
                                        harness_dir=str(pkg)))[0]
@@ -121,6 +142,14 @@ async def test_episode_report_with_action_shares_interventions_and_disabled_crit
     # The scripted policy answers one action per call: it was asked once per policy action, never
     # while the recovery had control.
     assert summary.policy_calls == report.policy_actions == 20
+    after = harness_counters(shared_stack)
+    delta = {k: v - before.get(k, 0.0) for k, v in after.items() if v != before.get(k, 0.0)}
+    assert delta == {
+        ("zetta_env_harness_actions_total", (("by", "policy"),)): 20.0,
+        ("zetta_env_harness_actions_total", (("by", "recovery"),)): 4.0,
+        ("zetta_env_harness_interventions_total", (("kind", "hold"), ("outcome", "reentered"))): 1.0,
+        ("zetta_env_harness_critics_disabled_total", ()): 1.0,
+    }, "the episode is counted once, at its end, on the worker's /metrics"
     # The same slot without a harness: no report, nothing replaced.
     plain = (await group.run_episode(task="", seed=4, model="scripted-pick-place", execute_steps=2))[0]
     assert plain.harness_report is None and plain.policy_calls == 24
