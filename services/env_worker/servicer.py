@@ -18,8 +18,7 @@ import numpy as np
 from google.protobuf import json_format
 
 from services.common import grpc_errors as ge
-from services.common.grpc_errors import ServiceError, error_boundary
-from services.common.metrics import HOP_LATENCY
+from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.spec_codec import spec_to_wire
 from zetta.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import harness_loop, metrics
@@ -33,20 +32,8 @@ log = logging.getLogger(__name__)
 
 
 def _timed(method: str):  # type: ignore[no-untyped-def]
-    def deco(fn):  # type: ignore[no-untyped-def]
-        hist = HOP_LATENCY.labels("env_worker", method)
-
-        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
-            start = time.perf_counter()
-            try:
-                return await fn(self, request, context)
-            finally:
-                hist.observe(time.perf_counter() - start)
-
-        wrapper.__name__ = fn.__name__
-        return error_boundary(wrapper)
-
-    return deco
+    """Env worker hop latency of every call (grpc_errors.timed_unary)."""
+    return timed_unary("env_worker", method)
 
 
 def _milestone_report(env: Slot) -> tuple[list[str], list[str], str]:

@@ -18,7 +18,7 @@ import numpy as np
 from google.protobuf import json_format
 
 from services.common import grpc_errors as ge
-from services.common.grpc_errors import ServiceError, error_boundary
+from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from zetta.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
@@ -50,27 +50,8 @@ MAX_CHUNK = 256
 
 
 def _timed(method: str):  # type: ignore[no-untyped-def]
-    """Record the gateway hop latency and the status code of every call."""
-
-    def deco(fn):  # type: ignore[no-untyped-def]
-        hist = HOP_LATENCY.labels("gateway", method)
-
-        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
-            start = time.perf_counter()
-            code = "OK"
-            try:
-                return await fn(self, request, context)
-            except ServiceError as exc:
-                code = exc.code.name
-                raise
-            finally:
-                hist.observe(time.perf_counter() - start)
-                metrics.REQUESTS.labels(method, code).inc()
-
-        wrapper.__name__ = fn.__name__
-        return error_boundary(wrapper)
-
-    return deco
+    """Gateway hop latency and status code of every call (grpc_errors.timed_unary)."""
+    return timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
 
 
 class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):

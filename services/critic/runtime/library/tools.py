@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.rotations import quat_to_mat, rotvec
 from services.critic.runtime.api import Frame
 
 OPEN, CLOSE, KEEP = -1.0, 1.0, 0.0
@@ -77,31 +78,6 @@ def other_object_positions(frame: Frame, task_object: np.ndarray, min_separation
 
 
 # ---- orientation --------------------------------------------------------------------------------
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """xyzw quaternion to rotation matrix."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / max(float(np.linalg.norm(q)), 1e-9)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def rotvec(m: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix."""
-    cos = np.clip((np.trace(m) - 1) / 2, -1.0, 1.0)
-    angle = float(np.arccos(cos))
-    if angle < 1e-6:
-        return np.zeros(3)
-    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-    norm = float(np.linalg.norm(axis))
-    if norm < 1e-6:  # angle near pi: the axis is the dominant column of (m + I)
-        col = m + np.eye(3)
-        axis = col[:, int(np.argmax(np.linalg.norm(col, axis=0)))]
-        norm = float(np.linalg.norm(axis))
-    return axis / norm * angle
 
 
 def hand_down(finger_axis_xy: np.ndarray, current: np.ndarray) -> np.ndarray:
