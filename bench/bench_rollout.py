@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import os
 import platform
 import shutil
@@ -42,7 +41,7 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +50,9 @@ import numpy as np
 # Lets `python bench/bench_rollout.py` run from a plain checkout, without installing the package.
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
+
+from zetta.bench_report import aligned  # noqa: E402
+from zetta.bench_sweep import quiet_fds  # noqa: E402
 
 SUITE = "libero_goal"
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -154,26 +156,6 @@ def naive_episode(index: int, max_steps: int) -> Episode:
         slot.close()
         family.close()
     return Episode(index, success, steps, time.perf_counter() - start, build_s)
-
-
-@contextlib.contextmanager
-def quiet_fds() -> Iterator[None]:
-    """Silence stdout and stderr at the file-descriptor level (LIBERO's and robosuite's import chatter)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
-        for fd in (*saved, devnull):
-            os.close(fd)
 
 
 def naive_warmup(max_steps: int, log: Callable[[str], None]) -> None:
@@ -356,14 +338,7 @@ def rows(points: Sequence[Point]) -> list[tuple[str, ...]]:
 
 
 def text_table(points: Sequence[Point]) -> str:
-    table = [HEADER, *rows(points)]
-    widths = [max(len(r[i]) for r in table) for i in range(len(HEADER))]
-    lines = []
-    for k, r in enumerate(table):
-        lines.append("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
-        if k == 0:
-            lines.append("  ".join("-" * w for w in widths))
-    return "\n".join(lines)
+    return aligned([HEADER, *rows(points)])
 
 
 def markdown_table(points: Sequence[Point]) -> str:

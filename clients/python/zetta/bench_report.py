@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -75,16 +76,21 @@ def rows(res: Results) -> list[tuple[str, ...]]:
     return out
 
 
-def text_table(res: Results) -> str:
-    """The table for a terminal."""
-    table = [HEADER, *rows(res)]
-    widths = [max(len(r[i]) for r in table) for i in range(len(HEADER))]
+def aligned(table: Sequence[Sequence[str]]) -> str:
+    """Rows of cells as a terminal table: the first row is the header, the first column left-aligned,
+    the others right-aligned (shared by the benchmarks' printouts)."""
+    widths = [max(len(r[i]) for r in table) for i in range(len(table[0]))]
     lines = []
     for k, r in enumerate(table):
         lines.append("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
         if k == 0:
             lines.append("  ".join("-" * w for w in widths))
     return "\n".join(lines)
+
+
+def text_table(res: Results) -> str:
+    """The table for a terminal."""
+    return aligned([HEADER, *rows(res)])
 
 
 def markdown_table(res: Results) -> str:
