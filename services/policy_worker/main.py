@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 
+from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.policy_worker.config import PolicyWorkerConfig
@@ -19,16 +20,19 @@ async def main() -> None:
     """Load the models, serve them through one scheduler, drain the queue on SIGTERM."""
     setup_logging("policy_worker")
     cfg = PolicyWorkerConfig.from_env()
-    models = {name: load_model(name) for name in cfg.models}
+    try:
+        models = {name: load_model(name) for name in cfg.models}
+    except ValueError as exc:  # a model's own settings (ZETTA_VLA_*) are wrong for this node
+        raise ConfigError(f"policy_worker: {exc}") from None
     for name, model in models.items():
         model.name = name
-    scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler,
-                               PrometheusObserver())
+    observer = PrometheusObserver()
+    scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler, observer)
     if os.environ.get("ZETTA_VLA_SPLIT", "0") not in ("", "0", "false"):
         # The Zetta VLA's stages in two processes sharing the prefix (docs/policies.md).
         from services.policy_worker.vla.split import wrap_for_split
 
-        scheduler = wrap_for_split(scheduler, models, cfg.scheduler)
+        scheduler = wrap_for_split(scheduler, models, cfg.scheduler, observer)
     servicer = PolicyWorkerServicer(models, cfg.models[0], scheduler, cfg.default_timeout_ms)
     runner = ServiceRunner(
         name="policy_worker",

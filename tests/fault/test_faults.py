@@ -414,9 +414,11 @@ def _run_service(module: str, env: dict[str, str]) -> subprocess.CompletedProces
         ("services.env_worker.main", {"ZETTA_GATEWAY_ADDRESS": "127.0.0.1:1", "ZETTA_ENV_FAMILIES": "nope",
                                       "ZETTA_ENV_WORKER_PORT": "0"}, "ZETTA_ENV_FAMILIES"),
         ("services.policy_worker.main", {"ZETTA_MODELS": "nope", "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_MODELS"),
+        ("services.policy_worker.main", {"ZETTA_MODELS": "zetta-vla-state", "ZETTA_VLA_DEVICE": "tpu",
+                                         "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_VLA_DEVICE"),
     ],
     ids=["gateway-no-redis-url", "gateway-timeout-below-interval", "gateway-redis-unreachable",
-         "env-worker-unknown-family", "policy-worker-unknown-model"],
+         "env-worker-unknown-family", "policy-worker-unknown-model", "policy-worker-bad-vla-device"],
 )
 def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, str], variable: str) -> None:
     """A misconfigured service stops at once with a message naming the variable, not a traceback."""

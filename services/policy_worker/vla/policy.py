@@ -130,11 +130,23 @@ def _threads() -> int:
     return int(os.environ.get("ZETTA_TORCH_THREADS", "1"))
 
 
+def vla_device() -> str:
+    """``ZETTA_VLA_DEVICE``: where the VLA runs (``cpu``, ``cuda`` or ``cuda:N``); checked at start-up
+    so a GPU profile on a node without a usable GPU fails at once instead of at the first request."""
+    device = os.environ.get("ZETTA_VLA_DEVICE", "cpu").strip() or "cpu"
+    if device != "cpu":
+        if not device.startswith("cuda"):
+            raise ValueError(f"ZETTA_VLA_DEVICE must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+        if not torch.cuda.is_available():
+            raise ValueError(f"ZETTA_VLA_DEVICE={device} but torch sees no CUDA device on this node")
+    return device
+
+
 def make_state_policy() -> ZettaVLAPolicy:
     return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_CHECKPOINT", str(STATE_CHECKPOINT)),
-                          quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), threads=_threads())
+                          quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), device=vla_device(), threads=_threads())
 
 
 def make_image_policy() -> ZettaVLAPolicy:
     return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_IMAGE_CHECKPOINT", str(IMAGE_CHECKPOINT)), name="zetta-vla-image",
-                          threads=_threads())
+                          device=vla_device(), threads=_threads())

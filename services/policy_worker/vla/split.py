@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.multiprocessing as tmp
 
-from services.policy_worker.scheduler import BatchScheduler, InferItem, SchedulerConfig
+from services.policy_worker.scheduler import BatchScheduler, InferItem, SchedulerConfig, SchedulerObserver
 
 
 class _SlotRing:
@@ -107,7 +107,8 @@ class SplitVLA:
 
     def __init__(self, checkpoint: str | None = None, quantize: str = "", device: str = "cpu",
                  vlm: SchedulerConfig | None = None, ae: SchedulerConfig | None = None,
-                 slots: int = 4096, threads: int = 1, name: str = "zetta-vla-state") -> None:
+                 slots: int = 4096, threads: int = 1, name: str = "zetta-vla-state",
+                 observer: SchedulerObserver | None = None) -> None:
         from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy
 
         torch.set_num_threads(max(1, threads))
@@ -126,7 +127,9 @@ class SplitVLA:
             self.prefixes.share_memory_()
             self.actions.share_memory_()
         self._ring = _SlotRing(slots)
-        self._vlm = BatchScheduler(self._encode_batch, vlm or SchedulerConfig())
+        # The worker's metrics see the stage-1 batches (the request-facing queue); stage 2 batches
+        # the same items again in its own process.
+        self._vlm = BatchScheduler(self._encode_batch, vlm or SchedulerConfig(), observer)
         ctx = tmp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
@@ -267,7 +270,8 @@ class SplitRouter:
         await asyncio.gather(self._default.drain(), *(s.drain() for s in self._split.values()))
 
 
-def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerConfig):
+def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerConfig,
+                   observer: SchedulerObserver | None = None):
     """What main.py calls: a SplitRouter when ZETTA_VLA_SPLIT is set and a VLA is served."""
     if not split_enabled():
         return scheduler
@@ -277,6 +281,7 @@ def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerCon
     for name, model in models.items():
         if isinstance(model, ZettaVLAPolicy) and not model.cfg.image_size:
             ckpt = os.environ.get("ZETTA_VLA_CHECKPOINT") or None
-            split[name] = SplitVLA(ckpt, quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), vlm=config, ae=config,
-                                   threads=int(os.environ.get("ZETTA_TORCH_THREADS", "1")), name=name)
+            split[name] = SplitVLA(ckpt, quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), device=str(model.device),
+                                   vlm=config, ae=config, threads=int(os.environ.get("ZETTA_TORCH_THREADS", "1")),
+                                   name=name, observer=observer)
     return SplitRouter(scheduler, split) if split else scheduler
