@@ -12,6 +12,7 @@ import logging
 import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 
 import grpc
 import numpy as np
@@ -104,19 +105,26 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
 
     @_timed("CloseSlots")
     async def CloseSlots(self, request, context) -> env_worker_pb2.CloseSlotsResponse:  # noqa: N802
-        closed = [sid for sid in request.session_ids if self._close(sid)]
-        return env_worker_pb2.CloseSlotsResponse(closed_session_ids=closed)
+        # Answer once the envs are closed, so that what closing finishes (an episode's video file)
+        # is complete when the client hears the session is closed.
+        closing = {sid: self._close(sid) for sid in request.session_ids}
+        pending = [asyncio.wrap_future(f) for futures in closing.values() if futures for f in futures]
+        for outcome in await asyncio.gather(*pending, return_exceptions=True):
+            if isinstance(outcome, BaseException):
+                log.error("closing an env failed: %s", outcome)
+        return env_worker_pb2.CloseSlotsResponse(closed_session_ids=[s for s, f in closing.items() if f is not None])
 
-    def _close(self, session_id: str) -> bool:
+    def _close(self, session_id: str) -> list[Future[None]] | None:
+        """Unbind the session and close its env on the slot's thread; None if it was not bound."""
         slot = self.table.release(session_id)
         if slot is None:
-            return False
+            return None
+        futures = []
         if slot.env is not None:
-            env = slot.env
-            slot.executor.submit(env.close)
+            futures.append(slot.executor.submit(slot.env.close))
         if not self.resource_sharing:
-            slot.executor.submit(slot.family.close)  # the session's own group: its scene goes too
-        return True
+            futures.append(slot.executor.submit(slot.family.close))  # the session's own group: its scene too
+        return futures
 
     def close_all(self, keep: Sequence[str] = ()) -> list[str]:
         """Drop every slot not in ``keep`` (after the registry declared them LOST)."""
