@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default="zetta-vla-state")
     p.add_argument("--suites", default="libero_goal_swap,libero_goal_task")
     p.add_argument("--tasks", default="6,9")
-    p.add_argument("--seeds", default="130-139", help="held-out seeds: 'a-b' or a comma list; init state = seed % 50")
+    p.add_argument("--seeds", default="130-139", help="held-out seeds: 'a-b' or a comma list; init state = seed %% 50")
     p.add_argument("--execute-steps", type=int, default=4)
     p.add_argument("--out", default="out/harness/eval.jsonl")
     p.add_argument("--doc", default="", help="also write the results page (table, every episode, command) here")

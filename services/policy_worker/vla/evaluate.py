@@ -128,7 +128,7 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="zetta-vla-state")
     p.add_argument("--suites", default="libero_goal,libero_goal_task,libero_goal_swap")
     p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
-    p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed % 50")
+    p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed %% 50")
     p.add_argument("--seed-offset", type=int, default=0)
     p.add_argument("--execute-steps", type=int, default=4)
     p.add_argument("--processes", type=int, default=2)
