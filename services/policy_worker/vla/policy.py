@@ -61,7 +61,7 @@ class ZettaVLAPolicy:
             torch.set_num_threads(threads)
         #: Flow-matching start x0: "gaussian" samples it, seeded per request from the request's own
         #: inputs (state and instruction), so the same observation gets the same draw whichever
-        #: requests share its batch and an episode key replays bit for bit; "zero" starts every
+        #: requests share its batch (and split or monolithic serving); "zero" starts every
         #: chunk at the noise mean. The mean start averages the modes where the teacher switches
         #: (descend vs. re-align above an object) and hovers between them; sampling commits to one
         #: (docs/vla-results.md).
