@@ -196,6 +196,18 @@ def test_gaussian_start_is_seeded_per_request(instruction) -> None:
         ZettaVLAPolicy(noise="uniform")
 
 
+def test_batch_invariant_mode_makes_rows_independent_of_their_batch(instruction, monkeypatch) -> None:
+    """Batched matmuls differ in the last bits with the batch size; in batch-invariant mode a
+    request's actions are bit for bit the same alone, in a batch of 3 or of 8."""
+    monkeypatch.setenv("ZETTA_VLA_BATCH_INVARIANT", "1")
+    p = ZettaVLAPolicy()
+    batch = _batch(8)
+    together = p.infer(batch, [instruction] * 8)
+    alone = np.concatenate([p.infer({k: v[i:i + 1] for k, v in batch.items()}, [instruction]) for i in range(8)])
+    three = p.infer({k: v[2:5] for k, v in batch.items()}, [instruction] * 3)
+    assert np.array_equal(together, alone) and np.array_equal(three, together[2:5])
+
+
 def test_gripper_snaps_to_the_three_commands_the_gripper_knows() -> None:
     from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 

@@ -69,6 +69,11 @@ class ZettaVLAPolicy:
         if self.noise not in ("gaussian", "zero"):
             raise ValueError(f"ZETTA_VLA_NOISE must be 'gaussian' or 'zero', got {self.noise!r}")
         self.seed = seed
+        #: Row-by-row computation: a request's actions then do not depend on what shares its batch
+        #: (batched CPU matmuls differ in the last bits with the batch size, and closed-loop
+        #: episodes amplify that), so episode keys replay through a batching server, at the cost
+        #: of batching's speed-up.
+        self.batch_invariant = os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "0") not in ("", "0", "false")
         self.model, self.meta, cache = load_checkpoint(checkpoint)
         self.device = torch.device(device)
         self.model.to(self.device)
@@ -115,13 +120,28 @@ class ZettaVLAPolicy:
         draws = [torch.randn(shape, generator=torch.Generator().manual_seed(int(s))) for s in seeds]
         return torch.stack(draws).to(self.device)
 
+    def encode(self, batch: dict[str, np.ndarray], instructions: list[str]) -> torch.Tensor:
+        """Stage 1 as served: one batched call, or row by row when :attr:`batch_invariant`."""
+        if not self.batch_invariant or len(instructions) == 1:
+            return self.encode_batch(batch, instructions)
+        return torch.cat([self.encode_batch({k: v[i:i + 1] for k, v in batch.items()}, instructions[i:i + 1])
+                          for i in range(len(instructions))])
+
     @torch.inference_mode()
+    def act_tensor(self, prefix: torch.Tensor, seeds: np.ndarray) -> torch.Tensor:
+        """Stage 2 on the model's device: actions [B, chunk, 7], x0 drawn from ``seeds``
+        (:meth:`request_seeds`); row by row when :attr:`batch_invariant`."""
+        if self.batch_invariant and len(prefix) > 1:
+            return torch.cat([self.model.act(prefix[i:i + 1].to(self.device), self.start_noise(seeds[i:i + 1]))
+                              for i in range(len(prefix))])
+        return self.model.act(prefix.to(self.device), self.start_noise(seeds))
+
     def act_batch(self, prefix: torch.Tensor, seeds: np.ndarray) -> np.ndarray:
-        """Stage 2: actions [B, chunk, 7] float32, x0 drawn from ``seeds`` (:meth:`request_seeds`)."""
-        return self.model.act(prefix.to(self.device), self.start_noise(seeds)).float().cpu().numpy()
+        """Stage 2 as float32 numpy."""
+        return self.act_tensor(prefix, seeds).float().cpu().numpy()
 
     def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        return self.act_batch(self.encode_batch(batch, instructions), self.request_seeds(batch, instructions))
+        return self.act_batch(self.encode(batch, instructions), self.request_seeds(batch, instructions))
 
 
 def _threads() -> int:

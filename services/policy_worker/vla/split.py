@@ -58,8 +58,7 @@ def _ae_main(checkpoint: str, quantize: str, device: str, threads: int, prefixes
     def run_batch(_model: str, inputs: dict[str, np.ndarray], _instr: list[str]) -> np.ndarray:
         slots = torch.from_numpy(inputs["slot"].astype(np.int64)).to(prefixes.device)
         with torch.inference_mode():
-            noise = policy.start_noise(seeds.index_select(0, slots.cpu()).numpy())
-            out = policy.model.act(prefixes.index_select(0, slots), noise)
+            out = policy.act_tensor(prefixes.index_select(0, slots), seeds.index_select(0, slots.cpu()).numpy())
             actions.index_copy_(0, slots, out.to(actions.dtype))
         if actions.is_cuda:
             torch.cuda.synchronize()
@@ -151,7 +150,7 @@ class SplitVLA:
         return self.policy.input_specs()
 
     def _encode_batch(self, _model: str, inputs: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        prefix = self.policy.encode_batch(inputs, instructions)
+        prefix = self.policy.encode(inputs, instructions)
         slots = self._ring.take(len(prefix))
         idx = torch.tensor(slots, device=self.prefixes.device)
         self.prefixes.index_copy_(0, idx, prefix.to(self.prefixes.dtype))
