@@ -21,6 +21,8 @@ class PolicyWorkerConfig:
     scheduler: SchedulerConfig
     default_timeout_ms: int
     grace_seconds: float
+    #: ZETTA_VLA_SPLIT: serve the Zetta VLA's two stages in two processes (docs/policies.md).
+    vla_split: bool = False
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "PolicyWorkerConfig":
@@ -41,6 +43,7 @@ class PolicyWorkerConfig:
         metrics_port = env.int("ZETTA_METRICS_PORT", 9103, minimum=-1, maximum=65535)
         timeout = env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1)
         grace = env.float("ZETTA_GRACE_SECONDS", 5.0, minimum=0.0)
+        vla_split = env.bool("ZETTA_VLA_SPLIT", False)
         if max_queue < max_batch:
             env.fail(f"ZETTA_MAX_QUEUE={max_queue} must be >= ZETTA_MAX_BATCH={max_batch}")
         env.finish("policy worker")
@@ -54,4 +57,5 @@ class PolicyWorkerConfig:
             ),
             default_timeout_ms=timeout,
             grace_seconds=grace,
+            vla_split=vla_split,
         )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
 
 from services.common.config import ConfigError
 from services.common.logs import setup_logging
@@ -28,7 +27,7 @@ async def main() -> None:
         model.name = name
     observer = PrometheusObserver()
     scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler, observer)
-    if os.environ.get("ZETTA_VLA_SPLIT", "0") not in ("", "0", "false"):
+    if cfg.vla_split:
         # The Zetta VLA's stages in two processes sharing the prefix (docs/policies.md).
         from services.policy_worker.vla.split import wrap_for_split
 

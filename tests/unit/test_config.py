@@ -190,3 +190,11 @@ def test_policy_worker_empty_models() -> None:
     """An empty model list is refused instead of serving nothing."""
     with pytest.raises(ConfigError, match="ZETTA_MODELS is empty"):
         PolicyWorkerConfig.from_env({"ZETTA_MODELS": " , "})
+
+
+def test_policy_worker_vla_split_is_a_checked_boolean() -> None:
+    """ZETTA_VLA_SPLIT is off by default, on for 1/true, and a typo stops the worker."""
+    assert PolicyWorkerConfig.from_env({}).vla_split is False
+    assert PolicyWorkerConfig.from_env({"ZETTA_VLA_SPLIT": "1"}).vla_split is True
+    with pytest.raises(ConfigError, match="ZETTA_VLA_SPLIT='maybe' is not a boolean"):
+        PolicyWorkerConfig.from_env({"ZETTA_VLA_SPLIT": "maybe"})

@@ -235,11 +235,6 @@ class MonolithicVLA:
         pass
 
 
-def split_enabled() -> bool:
-    """``ZETTA_VLA_SPLIT=1``: serve the Zetta VLA models split in two processes."""
-    return os.environ.get("ZETTA_VLA_SPLIT", "0") not in ("", "0", "false")
-
-
 class SplitRouter:
     """Drop-in for the worker's BatchScheduler: split models go to their SplitVLA, the rest to
     the ordinary scheduler (so the servicer is unchanged)."""
@@ -271,9 +266,7 @@ class SplitRouter:
 
 def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerConfig,
                    observer: SchedulerObserver | None = None):
-    """What main.py calls: a SplitRouter when ZETTA_VLA_SPLIT is set and a VLA is served."""
-    if not split_enabled():
-        return scheduler
+    """What main.py calls when ZETTA_VLA_SPLIT is set: a SplitRouter when a state VLA is served."""
     from services.policy_worker.vla.policy import ZettaVLAPolicy
 
     split = {}
