@@ -1,9 +1,12 @@
-"""Phase III consolidation: a cluster's validated patches become one harness version.
+"""Phase III consolidation: clusters' validated patches become one harness version.
 
-Critic unification: the union of the patches' critics; two patches with the same critic name (the
-same template) keep the setting that caught more of the cluster, so the merged critic fires on
-every member any of them caught at that setting's threshold. Recovery integration: per evidence
-kind one recovery, the one of the best-covering patch. The result is one draft, one version.
+Each cluster contributes a stack: the patches its internal versions stacked, each validated on top
+of the ones before it, so within a stack a later patch replaces an earlier one with the same
+critic or evidence kind. Across clusters, critic unification is the union of the stacks' critics
+and recovery integration keeps one plan per evidence kind; where two clusters set the same critic
+or plan differently, the earlier stack (the gate passes the largest cluster first) keeps its
+setting, because that is the one its cluster's historical regression measured. The result is one
+draft, one version, and the gate regresses it on every cluster it merges before it is admitted.
 """
 
 from __future__ import annotations
@@ -14,13 +17,18 @@ from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.repair import Candidate
 
 
-def consolidate(parent: HarnessDraft, patches: Sequence[Candidate]) -> HarnessDraft:
-    """``parent`` with every validated patch merged in (empty patches: the parent itself)."""
-    critics: dict[str, tuple[float, CriticDraft]] = {}
-    plans: dict[str, tuple[float, PlanDraft]] = {}
-    for p in sorted(patches, key=lambda c: (-c.coverage, c.false_positive, c.edits)):
-        if p.critic_name not in critics:
-            critics[p.critic_name] = (p.coverage, p.critic)
-        if p.critic.evidence not in plans:
-            plans[p.critic.evidence] = (p.coverage, p.plan)
-    return parent.with_patch({k: v for k, (_, v) in critics.items()}, {k: v for k, (_, v) in plans.items()})
+def consolidate(parent: HarnessDraft, stacks: Sequence[Sequence[Candidate]]) -> HarnessDraft:
+    """``parent`` with every cluster's stack merged in (no stacks: the parent itself)."""
+    critics: dict[str, CriticDraft] = {}
+    plans: dict[str, PlanDraft] = {}
+    for stack in stacks:
+        own_critics: dict[str, CriticDraft] = {}
+        own_plans: dict[str, PlanDraft] = {}
+        for p in stack:
+            own_critics[p.critic_name] = p.critic
+            own_plans[p.critic.evidence] = p.plan
+        for k, c in own_critics.items():
+            critics.setdefault(k, c)
+        for k, pl in own_plans.items():
+            plans.setdefault(k, pl)
+    return parent.with_patch(critics, plans)

@@ -37,8 +37,15 @@ class PlanDraft:
     chain: one table per part, by part name)."""
 
     recovery: str
-    args: Mapping[str, float] = field(default_factory=dict)
+    args: Mapping[str, Any] = field(default_factory=dict)
     max_uses: int = 3
+    #: Actions the intervention may take, the wait for re-entry included: a recovery that cannot
+    #: clear its evidence gives control back after this many instead of holding to the episode's end.
+    max_steps: int = 300
+    #: Library predicate that must hold before re-entry ("" = none).
+    clear_when: str = ""
+    #: The library playbook this plan instantiates ("" = a bare recovery template); names the mode.
+    playbook: str = ""
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,11 @@ class HarnessDraft:
     plans: Mapping[str, PlanDraft] = field(default_factory=dict)
     reentry_gamma: float = 0.6
     reentry_k: int = 5
+    #: Runtime settings: frames critics see (at least every critic's horizon) and the quiet steps
+    #: after an intervention, so the policy gets the chance re-entry promised it before the old
+    #: evidence still in the window counts again.
+    window: int = 80
+    cooldown: int = 15
     description: str = "Harness evolved by Zetta from a frozen policy's failures."
 
     def with_patch(self, critics: Mapping[str, CriticDraft], plans: Mapping[str, PlanDraft]) -> "HarnessDraft":
@@ -61,9 +73,20 @@ class HarnessDraft:
         """Identity of the draft's behaviour (not its name), for the buffer of rejected candidates."""
         body = {"critics": {k: [v.template, dict(sorted(v.params.items())), v.evidence, v.mode, v.priority, list(v.missing)]
                             for k, v in sorted(self.critics.items())},
-                "plans": {k: [v.recovery, dict(sorted(v.args.items())), v.max_uses] for k, v in sorted(self.plans.items())},
-                "reentry": [self.reentry_gamma, self.reentry_k]}
+                "plans": {k: [v.recovery, dict(sorted(v.args.items())), v.max_uses, v.max_steps, v.clear_when]
+                          for k, v in sorted(self.plans.items())},
+                "reentry": [self.reentry_gamma, self.reentry_k], "runtime": [self.window_frames(), self.cooldown]}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:16]
+
+    def window_frames(self) -> int:
+        """The runtime window: ``window``, widened past every critic's integer parameters (frame
+        counts: horizon, confirm, ...) so no critic is starved of the frames it looks back over."""
+        from services.critic.runtime.library import PREDICATES
+
+        frames = [int(v) + 1 for c in self.critics.values() if c.template in PREDICATES
+                  for k, v in c.params.items() if k in PREDICATES[c.template].params
+                  and PREDICATES[c.template].params[k].kind == "int"]
+        return max([self.window, *frames])
 
     def edits_from(self, parent: "HarnessDraft") -> int:
         """How many critics/plans/parameters differ from ``parent`` (the size of the patch)."""
@@ -80,6 +103,7 @@ class HarnessDraft:
                 n += 1
             else:
                 n += sum(1 for p in set(a2.args) | set(b2.args) if a2.args.get(p) != b2.args.get(p))
+                n += (a2.max_uses != b2.max_uses) + (a2.max_steps != b2.max_steps) + (a2.clear_when != b2.clear_when)
         return n
 
 
@@ -99,9 +123,9 @@ def _inline(values: Mapping[str, Any]) -> str:
     return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in sorted(values.items())) + " }"
 
 
-def mode_name(evidence: str, recovery: str) -> str:
+def mode_name(evidence: str, plan: PlanDraft) -> str:
     """The playbook (mode) name of a plan: one per evidence kind."""
-    return f"{recovery.replace('+', '_then_')}_on_{evidence}"
+    return f"{plan.playbook or plan.recovery.replace('+', '_then_')}_on_{evidence}"
 
 
 def render(draft: HarnessDraft) -> dict[str, bytes]:
@@ -111,11 +135,12 @@ def render(draft: HarnessDraft) -> dict[str, bytes]:
     with an ``[[adjudication]]`` rule that grants its playbook, gated on the kind of the cluster's
     first missing milestone; plans/<mode>.toml holds the playbook."""
     front = [f"name = {json.dumps(draft.name)}", f"description = {json.dumps(draft.description)}",
-             f"tasks = {_toml_value(list(draft.tasks))}", "", "[reentry]", f"gamma = {draft.reentry_gamma!r}",
+             f"tasks = {_toml_value(list(draft.tasks))}", "", "[runtime]", f"window = {draft.window_frames()}",
+             f"cooldown = {draft.cooldown}", "", "[reentry]", f"gamma = {draft.reentry_gamma!r}",
              f"k = {draft.reentry_k}", ""]
     for name, c in sorted(draft.critics.items()):
         plan = draft.plans.get(c.evidence)
-        mode = mode_name(c.evidence, plan.recovery) if plan else c.mode
+        mode = mode_name(c.evidence, plan) if plan else c.mode
         front += ["[[critics]]", f"name = {json.dumps(name)}", f"predicate = {json.dumps(c.template)}",
                   f"evidence = {json.dumps(c.evidence)}", f"mode = {json.dumps(mode)}",
                   f"params = {_inline(c.params)}", ""]
@@ -125,10 +150,12 @@ def render(draft: HarnessDraft) -> dict[str, bytes]:
                                                      for k, c in sorted(draft.critics.items())) or "none") + ".\n"
     files = {"SKILL.md": ("+++\n" + "\n".join(front) + "\n+++\n" + body).encode()}
     for evidence, p in sorted(draft.plans.items()):
-        mode = mode_name(evidence, p.recovery)
+        mode = mode_name(evidence, p)
         parts = p.recovery.split("+")
         recovery = json.dumps(parts[0]) if len(parts) == 1 else _toml_value(parts)
-        text = f"[{mode}]\nrecovery = {recovery}\nmax_uses = {p.max_uses}\n"
+        text = f"[{mode}]\nrecovery = {recovery}\nmax_uses = {p.max_uses}\nmax_steps = {p.max_steps}\n"
+        if p.clear_when:
+            text += f"clear_when = {json.dumps(p.clear_when)}\n"
         if p.args:
             text += f"params = {_inline(p.args)}\n"
         files[f"plans/{mode}.toml"] = text.encode()

@@ -13,12 +13,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
+
 from services.evolver.cluster import Cluster, ClusterParams, cluster_failures
 from services.evolver.consolidate import consolidate
 from services.evolver.diagnose import Case, RepairSpec, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.eod import EOD, EODParams, t_eod
-from services.evolver.gate import GateParams, count, judge
+from services.evolver.gate import GateParams, count, judge, regression_gate
 from services.evolver.llm import LLMConfig, LLMError, propose
 from services.evolver.profile import SuccessIndex, build_profile
 from services.evolver.registry_client import RegistryClient
@@ -72,6 +74,25 @@ class TaskState:
 
     draft: HarnessDraft
     ref: str = ""
+
+
+@dataclass(frozen=True)
+class ClusterRepair:
+    """What Loop 2 made of one cluster: its record, the validated patches in the order they were
+    stacked, the harness they make on top of the current one (None: nothing validated), the
+    cluster's seeds and that harness's historical regression on them, with its reference."""
+
+    record: dict[str, Any]
+    stack: list[Candidate]
+    draft: HarnessDraft | None
+    seeds: list[int]
+    regression: tuple[int, int]
+    ref: str
+
+    def passes(self, gate: GateParams) -> bool:
+        """Whether the stack is validated and solved the share of the cluster the gate asks for."""
+        s, n = self.regression
+        return bool(self.stack) and self.draft is not None and n > 0 and s / n >= gate.regression_min
 
 
 def _noop(phase: str, done: int, total: int) -> None:
@@ -139,36 +160,50 @@ class Evolution:
         self.store.record("profile", {"suite": self.cfg.suite, "task": task, "round": round_, "harness": cur.ref or "bare",
                                       "successes": prof.successes, "episodes": len(rollouts),
                                       "manifest": prof.manifest()}, ident=f"{self.cfg.suite}/{task}/{round_}")
-        patches: list[Candidate] = []
-        cluster_seeds: list[int] = []
-        specs: list[dict[str, Any]] = []
+        repairs: list[ClusterRepair] = []
         if prof.failures:
             traces = [self.store.trace(f.rollout) for f in prof.failures]
-            eods = [t_eod(tr, prof.index, self.cfg.eod) for tr in traces]
+            index = self._reference_index(task, rollouts, traces)
+            eods = [t_eod(tr, index, self.cfg.eod) for tr in traces]
             budget = max(r.steps for r in rollouts)
-            clusters = cluster_failures(prof.failures, traces, eods, prof.index, budget, self.cfg.cluster)
+            clusters = cluster_failures(prof.failures, traces, eods, index, budget, self.cfg.cluster)
             succ_traces = [self.store.trace(r) for r in rollouts if r.success]
             for cl in clusters[: self.cfg.max_clusters]:
                 idx = [prof.failures.index(f) for f in cl.members]
-                record, found = self._repair_cluster(task, round_, cur, cl, [traces[i] for i in idx],
-                                                     [eods[i] for i in idx], succ_traces, prof.index)
-                specs.append(record)
-                if found:
-                    patches.extend(found)
-                    cluster_seeds.extend(cl.seeds)
-        if patches:
-            self.gate(task, round_, cur, patches, sorted(set(cluster_seeds)), specs)
+                repairs.append(self._repair_cluster(task, round_, cur, cl, [traces[i] for i in idx],
+                                                    [eods[i] for i in idx], succ_traces, index))
+        passing = [r for r in repairs if r.passes(self.cfg.gate)]
+        if passing:
+            self.gate(task, round_, cur, passing, [r.record for r in repairs])
         self.store.record("round_done", {"suite": self.cfg.suite, "task": task, "round": round_,
-                                         "wall_s": time.time() - t0, "patches": len(patches)})
+                                         "wall_s": time.time() - t0, "patches": sum(len(r.stack) for r in passing)})
+
+    def _reference_index(self, task: str, rollouts: Sequence[Rollout], failures: Sequence[Trace] = ()) -> SuccessIndex:
+        """I_succ for t_EOD and clustering: the successes among this round's profile rollouts plus every
+        other successful rollout on a dev seed of the task (with any harness: candidates' validation
+        and regression rollouts). A frozen policy that never succeeds alone leaves the profile's
+        index empty; successes its harnesses produced still show what a good episode looks like at
+        each milestone. Held-out rollouts never enter (dev/held-out separation). With no success
+        anywhere, distances are scaled by the spread of the ``failures`` themselves."""
+        dev = set(self.store.seeds(self.cfg.suite, task, DEV))
+        seen = {r.key for r in rollouts}
+        succ = [r for r in rollouts if r.success]
+        succ += [r for r in self.store.query(suite=self.cfg.suite, task=task, success=True)
+                 if r.seed in dev and r.key not in seen and r.purpose != "heldout"]
+        return SuccessIndex.build([self.store.trace(r) for r in succ], fallback=failures)
 
     def _repair_cluster(self, task: str, round_: int, cur: TaskState, cl: Cluster, traces: Sequence[Trace],
-                        eods: Sequence[EOD], succ_traces: Sequence[Trace],
-                        index: SuccessIndex) -> tuple[dict[str, Any], list[Candidate]]:
+                        eods: Sequence[EOD], succ_traces: Sequence[Trace], index: SuccessIndex) -> "ClusterRepair":
         """Diagnose one cluster's medoid, search patches for its repair spec and validate them, stacking
-        up to ``max_depth`` internal versions (v1 = the candidate that got the medoid furthest, v2 =
-        a patch on top of it for what stopped v1, diagnosed on v1's own medoid rollout, ...) until one
-        succeeds on the medoid; returns the cluster's record and the stacked patches when the last
-        one was validated (else none)."""
+        up to ``max_depth`` internal versions until one solves every seed of the cluster.
+
+        Each version stacks one patch on the previous one and is measured on every cluster seed
+        (the v0/v1/v2 curves). What the next version repairs: when no candidate succeeded on the
+        seed under repair, the candidate that got it furthest along M (a stepping stone, the paper's
+        stagnant v1) is kept and its own rollout of that seed is diagnosed; when one succeeded but
+        the version still fails other cluster seeds (historical regression below 100 %), the failing
+        member closest to the medoid is diagnosed under the version next. The validated stack and
+        its regression numbers go to the gate."""
         cases = [self._case(tr, e, f.m_star, cur.draft) for tr, e, f in zip(traces, eods, cl.members)]
         spec = repair_spec(f"{task}/r{round_}/{cl.cid}", cl.medoid_failure.rollout.key, cases[cl.medoid],
                            [c for j, c in enumerate(cases) if j != cl.medoid])
@@ -176,40 +211,56 @@ class Evolution:
                   "size": len(cl.members), "seeds": cl.seeds, "medoid_seed": cl.medoid_failure.rollout.seed,
                   "spec": spec.to_dict(), "eods": [e.to_dict() for e in cl.eods]}
         self.store.record("cluster", record, ident=spec.cluster)
+        seeds, cluster = cl.seeds, spec.cluster
         if not spec.repairable:
-            return record, []
+            return ClusterRepair(record, [], cur.draft, seeds, (0, len(seeds)), cur.ref)
         medoid = ReplayCase(traces[cl.medoid], eods[cl.medoid].step, eods[cl.medoid].referenced)
         members = [ReplayCase(tr, e.step, e.referenced)
                    for j, (tr, e) in enumerate(zip(traces, eods)) if j != cl.medoid]
-        seeds, medoid_seed, cluster = cl.seeds, cl.medoid_failure.rollout.seed, spec.cluster
-        base = cur.draft
+        # Cluster seeds by closeness to the medoid: the order in which failing members are taken up.
+        order = [seeds[j] for j in np.argsort(np.linalg.norm(cl.features - cl.features[cl.medoid], axis=1), kind="stable")]
+        target = cl.medoid_failure.rollout.seed
+        base, ref = cur.draft, cur.ref
         progress = len(cl.medoid_failure.rollout.milestones_reached)
         versions = [{"version": "v0", "harness": cur.ref or "bare", "successes": 0, "episodes": len(seeds),
                      "medoid_milestones": progress}]
         stack: list[Candidate] = []
+        validated: list[Candidate] = []
+        regression = (0, len(seeds))
         tried = 0
         for _ in range(self.cfg.max_depth):
             cands = self._candidates(spec, base, medoid, members, succ_traces)
             tried += len(cands)
-            v = self.validate(task, round_, cluster, base, cands, medoid_seed, progress)
+            v = self.validate(task, round_, cluster, base, cands, target, progress)
             pick = v.found or v.step
             if pick is None or v.rollout is None:
                 break
             stack.append(pick)
-            base = pick.apply(base)
+            base, ref = pick.apply(base), v.ref
             reg = self._rollouts(self._keys(task, seeds, v.ref, "regress"), f"r{round_} {cluster} regress", round_)
-            s_, n_ = count(reg)
-            version = {"version": f"v{len(versions)}", "harness": v.ref, "successes": s_, "episodes": n_,
-                       "medoid_milestones": v.progress, "validated": v.found is not None}
+            regression = count(reg)
+            version = {"version": f"v{len(versions)}", "harness": v.ref, "successes": regression[0],
+                       "episodes": regression[1], "medoid_milestones": v.progress, "seed": target,
+                       "validated": v.found is not None}
             versions.append(version)
             if v.found is not None:
-                break
-            # The next version repairs what stops the stepping stone: diagnose its own medoid rollout.
-            progress = v.progress
-            tr = self.store.trace(v.rollout)
+                validated = list(stack)
+                failing = {r.seed: r for r in reg if not r.success}
+                if not failing:
+                    break
+                # Validated on the seed under repair, not yet on the whole cluster: the next version
+                # repairs the closest member this one still fails.
+                target = next(s for s in order if s in failing)
+                nxt = failing[target]
+                progress = len(nxt.milestones_reached)
+            else:
+                # The next version repairs what stops the stepping stone: diagnose its own rollout.
+                nxt = v.rollout
+                progress = v.progress
+            tr = self.store.trace(nxt)
             eod = t_eod(tr, index, self.cfg.eod)
-            spec = repair_spec(f"{cluster}/{version['version']}", v.rollout.key,
-                               self._case(tr, eod, v.rollout.first_missing or "<none>", base), [])
+            spec = repair_spec(f"{cluster}/{version['version']}", nxt.key,
+                               self._case(tr, eod, nxt.first_missing or "<none>", base), [])
             version["diagnosis"] = spec.to_dict()
             if not spec.repairable:
                 break
@@ -217,8 +268,15 @@ class Evolution:
         self.store.record("cluster_versions", {"suite": self.cfg.suite, "task": task, "round": round_,
                                                "cluster": cluster, "versions": versions, "tried": tried},
                           ident=cluster)
-        validated = bool(stack) and versions[-1].get("validated", False)
-        return record, stack if validated else []
+        if not validated:
+            return ClusterRepair(record, [], None, seeds, regression, "")
+        if len(validated) < len(stack):  # stepping stones stacked after the last validated version
+            last = next(v for v in reversed(versions) if v.get("validated"))
+            regression, ref = (last["successes"], last["episodes"]), last["harness"]
+            base = cur.draft
+            for c in validated:
+                base = c.apply(base)
+        return ClusterRepair(record, validated, base, seeds, regression, ref)
 
     def _candidates(self, spec: RepairSpec, base: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
                     succ_traces: Sequence[Trace]) -> list[Candidate]:
@@ -285,16 +343,41 @@ class Evolution:
                 best = Validation(None, cand, ref, reached, medoid)
         return best
 
-    def gate(self, task: str, round_: int, cur: TaskState, patches: Sequence[Candidate], seeds: Sequence[int],
+    def gate(self, task: str, round_: int, cur: TaskState, repairs: Sequence["ClusterRepair"],
              specs: Sequence[dict[str, Any]]) -> None:
-        """Consolidate, regress on every cluster seed, compare on held-out seeds, admit or reject."""
+        """Consolidate the clusters' validated stacks, regress on every seed of the clusters kept, compare
+        on held-out seeds, admit or reject.
+
+        Consolidation is a pass over the clusters, largest first: each one's stack already solved all
+        of its own seeds (historical regression, measured with its internal versions); it joins the
+        merged harness only if the merged harness still solves every seed of every cluster joined so
+        far. The result faces the held-out gate once."""
         assert self.registry is not None
-        merged = consolidate(cur.draft, patches)
+        ordered = sorted(repairs, key=lambda r: (-len(r.seeds), r.record["cluster"]))
+        merged, ref, seeds, stacks = ordered[0].draft, ordered[0].ref, list(ordered[0].seeds), [ordered[0].stack]
+        reg = self._rollouts(self._keys(task, seeds, ref, "regress"), f"r{round_} {task} regression", round_)
+        for nxt in ordered[1:]:
+            trial = consolidate(cur.draft, [*stacks, nxt.stack])
+            if self.store.is_rejected(trial.fingerprint()):
+                continue
+            trial_ref = self._candidate_ref(trial)
+            trial_seeds = sorted(set(seeds) | set(nxt.seeds))
+            trial_reg = self._rollouts(self._keys(task, trial_seeds, trial_ref, "regress"),
+                                       f"r{round_} {task} regression", round_)
+            why = regression_gate(trial_reg, self.cfg.gate)
+            self.store.record("consolidation", {"suite": self.cfg.suite, "task": task, "round": round_,
+                                                "cluster": nxt.record["cluster"], "candidate": trial_ref,
+                                                "regression": list(count(trial_reg)), "joined": why is None,
+                                                "reason": why or ""}, ident=trial.fingerprint())
+            if why is not None:
+                self.store.reject(trial.fingerprint(), f"{task}/r{round_}", why)
+                continue
+            merged, ref, seeds, reg = trial, trial_ref, trial_seeds, trial_reg
+            stacks.append(nxt.stack)
+        patches = [p for st in stacks for p in st]
         fp = merged.fingerprint()
         if self.store.is_rejected(fp):
             return
-        ref = self._candidate_ref(merged)
-        reg = self._rollouts(self._keys(task, seeds, ref, "regress"), f"r{round_} {task} regression", round_)
         held_seeds = self.store.seeds(self.cfg.suite, task, HELDOUT)
         held = self._rollouts(self._keys(task, held_seeds, ref, "heldout"), f"r{round_} {task} held-out", round_)
         current = self._rollouts(self._keys(task, held_seeds, cur.ref, "heldout"), f"r{round_} {task} held-out current",
@@ -357,16 +440,17 @@ def _draft_to(d: HarnessDraft) -> dict[str, Any]:
     return {"name": d.name, "tasks": list(d.tasks),
             "critics": {k: {"template": c.template, "params": dict(c.params), "evidence": c.evidence, "mode": c.mode,
                             "priority": c.priority, "missing": list(c.missing)} for k, c in d.critics.items()},
-            "plans": {k: {"recovery": p.recovery, "args": dict(p.args), "max_uses": p.max_uses}
-                      for k, p in d.plans.items()},
-            "reentry": [d.reentry_gamma, d.reentry_k]}
+            "plans": {k: {"recovery": p.recovery, "args": dict(p.args), "max_uses": p.max_uses, "max_steps": p.max_steps,
+                          "clear_when": p.clear_when, "playbook": p.playbook} for k, p in d.plans.items()},
+            "reentry": [d.reentry_gamma, d.reentry_k], "runtime": [d.window, d.cooldown]}
 
 
 def _draft_from(body: dict[str, Any]) -> HarnessDraft:
     return HarnessDraft(name=body["name"], tasks=tuple(body["tasks"]),
                         critics={k: CriticDraft(**{**v, "missing": tuple(v["missing"])}) for k, v in body["critics"].items()},
-                        plans={k: PlanDraft(v["recovery"], v["args"], v["max_uses"]) for k, v in body["plans"].items()},
-                        reentry_gamma=body["reentry"][0], reentry_k=body["reentry"][1])
+                        plans={k: PlanDraft(**v) for k, v in body["plans"].items()},
+                        reentry_gamma=body["reentry"][0], reentry_k=body["reentry"][1],
+                        **dict(zip(("window", "cooldown"), body.get("runtime", ()))))
 
 
 def evaluate_transfer(store: RolloutStore, run: RunConfig, suite: str, tasks: Sequence[str], harness: str, seeds: int,

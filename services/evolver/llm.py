@@ -17,9 +17,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.diagnose import RepairSpec
-from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
-from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, library, score_critic,
-                                     stage_of)
+from services.evolver.draft import CriticDraft, HarnessDraft
+from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, library, plan_of, plan_stages,
+                                     playbooks, score_critic)
 from services.evolver.trace import Trace
 
 
@@ -44,11 +44,15 @@ def _prompt(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any], re
     return json.dumps({
         "task": "Propose up to 3 minimal harness patches for this failure cluster. Answer with only a JSON "
                 "object {\"patches\": [{\"critic\": {\"template\": str, \"params\": {}}, \"recovery\": "
-                "{\"template\": str, \"args\": {}}}]}. Templates and parameter ranges [low, high, default] below.",
+                "{\"template\": str, \"args\": {}}}]}. A recovery template is a recovery, an \"a+b\" chain of "
+                "recoveries (args: one table per part) or a playbook. Templates and parameter ranges "
+                "[low, high, default] below.",
         "repair_spec": spec.to_dict(),
         "parent_critics": {k: {"template": c.template, "params": dict(c.params), "recovery": c.mode}
                            for k, c in parent.critics.items()},
         "predicates": schema(preds), "recoveries": schema(recs),
+        "playbooks": {n: {"steps": list(b.steps), "for_first_missing_milestone_kinds": list(b.stages), "doc": b.doc}
+                      for n, b in playbooks().items()},
     })
 
 
@@ -112,8 +116,8 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
         args = {str(k): v for k, v in dict(patch["recovery"].get("args", {})).items()}
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         return None, f"malformed patch {dict(patch)!r}: {exc}"
-    plan = PlanDraft(recovery, args)
-    critic = CriticDraft(template, setting, evidence=template, mode=recovery, missing=stage_of(spec.m_star))
+    plan = plan_of(recovery, args)
+    critic = CriticDraft(template, setting, evidence=template, mode=recovery, missing=plan_stages(plan, spec.m_star))
     why = check_patch(parent, Candidate(f"c_{template}", critic, plan, -1, 0.0, 0.0, 0, source="llm"), max_edits)
     if why is not None:
         return None, why
@@ -123,6 +127,6 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
         return None, f"{template} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
     if res[2] > params.max_false_positive:
         return None, f"{template} fires on {res[2]:.0%} of successful rollouts"
-    critic = CriticDraft(template, full, evidence=template, mode=recovery, missing=stage_of(spec.m_star))
+    critic = CriticDraft(template, full, evidence=template, mode=recovery, missing=plan_stages(plan, spec.m_star))
     edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
     return Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits, source="llm"), ""

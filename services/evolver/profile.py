@@ -28,6 +28,15 @@ def progress(trace: Trace) -> np.ndarray:
     return first_missing.astype(np.int64)
 
 
+def spread(traces: Sequence[Trace], min_scale: float = 0.01) -> np.ndarray:
+    """Per dimension of the relative state, its standard deviation over every frame of ``traces``
+    (at least ``min_scale``; ones when there are no frames)."""
+    states = [relative_state(tr.obs) for tr in traces if tr.frames]
+    if not states:
+        return np.ones(STATE_DIM, dtype=np.float32)
+    return np.maximum(np.concatenate(states).std(axis=0), min_scale).astype(np.float32)
+
+
 @dataclass
 class SuccessIndex:
     """I_succ: reference states by milestone progress, plus the scale that normalizes distances."""
@@ -41,21 +50,20 @@ class SuccessIndex:
         return self.states.get(int(p), np.zeros((0, len(self.scale)), dtype=np.float32))
 
     @classmethod
-    def build(cls, traces: Sequence[Trace], min_scale: float = 0.01) -> "SuccessIndex":
+    def build(cls, traces: Sequence[Trace], min_scale: float = 0.01,
+              fallback: Sequence[Trace] = ()) -> "SuccessIndex":
         """The index of the given successful traces; the scale is each dimension's spread (at least
-        ``min_scale``) over all their states, so no dimension dominates by its units."""
+        ``min_scale``) over all their states, so no dimension dominates by its units. With no
+        success at all the scale is the spread over ``fallback`` (the failures): distances stay in
+        units of how much states vary, not in metres, where a fixed clustering radius would lump
+        every failure with the same m* together."""
         by_p: dict[int, list[np.ndarray]] = {}
-        every = []
         for tr in traces:
             rel = relative_state(tr.obs)
-            every.append(rel)
             for p in np.unique(progress(tr)):
                 by_p.setdefault(int(p), []).append(rel[progress(tr) == p])
         states = {p: np.concatenate(v).astype(np.float32) for p, v in by_p.items()}
-        scale = np.ones(STATE_DIM, dtype=np.float32)
-        if every:
-            scale = np.maximum(np.concatenate(every).std(axis=0), min_scale).astype(np.float32)
-        return cls(states=states, scale=scale, rollouts=len(traces))
+        return cls(states=states, scale=spread(traces or fallback, min_scale), rollouts=len(traces))
 
 
 @dataclass(frozen=True)

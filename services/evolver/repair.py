@@ -2,12 +2,15 @@
 
 For a repair spec (diagnose.RepairSpec) the search proposes patches {C*, R*}: a critic built from a
 library predicate template, with at most ``max_param_edits`` parameters moved off their defaults
-by one grid step inside the template's declared range, paired with a library recovery that handles
-that evidence. A critic qualifies only if a diagnostic replay shows it fires within ``window``
-steps of t_EOD on the medoid; candidates are ranked by how many cluster members it also catches
-near their t_EOD, then by how rarely it fires on successful rollouts (false positives), then by
-closeness to t_EOD, then by edit size. The search is deterministic and needs no network; an
-LLM backend (llm.py) may add candidates, which then face exactly the same checks.
+by one grid step inside the template's declared range, paired with a plan: one of the library's
+typed playbooks meant for the kind of m* (multi-step recoveries such as acquire, or acquire and
+place in one intervention; services/critic/runtime/library/playbooks.py) or a recovery template
+compatible with the evidence. A critic qualifies only if a diagnostic replay shows it fires within
+``window`` steps of t_EOD on the medoid; critics are ranked by how many cluster members they also
+catch near their t_EOD, then by how rarely they fire on successful rollouts (false positives), then
+by closeness to t_EOD, then by edit size, and candidates walk the critic and plan orders together.
+The search is deterministic and needs no network; an LLM backend (llm.py) may add candidates,
+which then face exactly the same checks.
 """
 
 from __future__ import annotations
@@ -42,6 +45,15 @@ NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})
 
 class LibraryUnavailable(RuntimeError):
     """The harness library (services/critic/runtime/library) is not importable."""
+
+
+def playbooks() -> Mapping[str, Any]:
+    """The installed library's typed playbooks (multi-step recoveries with budgets and stages)."""
+    try:
+        from services.critic.runtime.library.playbooks import PLAYBOOKS
+    except ImportError:
+        return {}
+    return PLAYBOOKS
 
 
 def library() -> tuple[Mapping[str, Any], Mapping[str, Any]]:
@@ -114,7 +126,8 @@ class Candidate:
     def to_dict(self) -> dict[str, Any]:
         """JSON form for manifests and reports."""
         return {"critic": self.critic_name, "template": self.critic.template, "params": dict(self.critic.params),
-                "recovery": self.plan.recovery, "args": dict(self.plan.args), "fire_step": self.fire_step,
+                "recovery": self.plan.recovery, "args": dict(self.plan.args), "playbook": self.plan.playbook,
+                "max_uses": self.plan.max_uses, "max_steps": self.plan.max_steps, "fire_step": self.fire_step,
                 "coverage": self.coverage, "false_positive": self.false_positive, "edits": self.edits,
                 "source": self.source}
 
@@ -151,41 +164,90 @@ def recoveries_for(evidence: str, recoveries: Mapping[str, Any]) -> list[str]:
     return preferred or ([] if evidence in COMPATIBLE else sorted(recoveries))
 
 
+def plan_of(name: str, args: Mapping[str, Any] | None = None) -> PlanDraft:
+    """The plan for a recovery name: a library playbook (its steps, budgets, clearing condition and
+    per-step arguments) or a recovery template / "a+b" chain with ``args``."""
+    book = playbooks().get(name)
+    if book is None:
+        return PlanDraft(name, dict(args or {}))
+    merged = {step: dict(v) for step, v in book.args.items()}
+    for step, v in (args or {}).items():
+        merged[step] = {**merged.get(step, {}), **dict(v)}
+    if len(book.steps) == 1:
+        merged = merged.get(book.steps[0], {})
+    return PlanDraft("+".join(book.steps), merged, max_uses=book.max_uses, max_steps=book.max_steps,
+                     clear_when=book.clear_when, playbook=book.name)
+
+
+def plan_stages(plan: PlanDraft, m_star: str) -> tuple[str, ...]:
+    """Kinds of first missing milestone under which the plan is granted: a playbook's own stages
+    (it was written for all of them, so the patch transfers to seeds that fail one stage earlier or
+    later), else the kind of the cluster's m*."""
+    book = playbooks().get(plan.playbook)
+    return tuple(book.stages) if book is not None else stage_of(m_star)
+
+
+def recovery_options(evidence: str, m_star: str, recoveries: Mapping[str, Any], singles: int = 2,
+                     holding: bool | None = None) -> list[PlanDraft]:
+    """Plans worth pairing with a critic of ``evidence`` for a failure at ``m_star``, in preference
+    order: the library playbooks meant for m*'s kind that can start from what the evidence implies
+    about the grasp (``holding``; the longest first: they carry the episode furthest), then up to
+    ``singles`` recovery templates compatible with the evidence."""
+    from services.critic.runtime.library.playbooks import serving
+
+    kind = stage_of(m_star)
+    books = [plan_of(b.name) for b in serving(kind[0], holding)] if kind else []
+    books = [b for b in books if all(part in recoveries for part in b.recovery.split("+"))]
+    return books + [plan_of(r) for r in recoveries_for(evidence, recoveries)[:singles]]
+
+
 def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
            successes: Sequence[Trace], params: SearchParams = SearchParams(),
            rejected: Callable[[str], bool] | None = None) -> list[Candidate]:
     """Ranked candidate patches for a repairable spec (empty when nothing qualifies).
 
-    ``rejected(fingerprint) -> bool`` filters candidates whose resulting harness was rejected
-    before, so no candidate is ever evaluated twice."""
+    Each critic template keeps its best setting (coverage of the cluster, then false positives,
+    closeness to t_EOD, edit size); candidates pair it with the plans of :func:`recovery_options`.
+    The ranking walks both orders diagonally (best critic with best plan, then the runner-up of
+    either, ...), so a few closed-loop validations try different plans and different detectors
+    instead of near-copies of one patch. ``rejected(fingerprint) -> bool`` filters candidates
+    whose resulting harness was rejected before, so no candidate is ever evaluated twice."""
     if not spec.repairable:
         return []
     preds, recs = library()
-    templates = _templates_for(spec, parent, preds)
-    scored: list[Candidate] = []
-    for template in templates:
+    critics: list[tuple[tuple[float, float, int, int], str, dict[str, float], tuple[int, float, float]]] = []
+    for template in _templates_for(spec, parent, preds):
         ps = preds[template]
-        base = parent.critics.get(f"c_{template}")
+        best = None
         for setting in param_grid(ps.params, params.max_param_edits, params.grid_fraction):
-            if base is not None and dict(base.params) == setting:
-                continue
             res = score_critic(ps.fn, setting, medoid, members, successes, params.window)
             if res is None or res[2] > params.max_false_positive:
                 continue
-            for recovery in recoveries_for(template, recs)[:2]:
-                critic = CriticDraft(template, setting, evidence=template, mode=recovery,
-                                     missing=stage_of(spec.m_star))
-                plan = PlanDraft(recovery)
-                edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
-                cand = Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits)
-                if rejected is not None and rejected(cand.apply(parent).fingerprint()):
-                    continue
-                if build_error(cand.apply(parent)) is not None:
-                    continue
-                scored.append(cand)
-    scored.sort(key=lambda c: (-c.coverage, c.false_positive, abs(c.fire_step - medoid.t_eod), c.edits,
-                               c.critic.template, c.plan.recovery))
-    return scored[: params.max_candidates]
+            base = parent.critics.get(f"c_{template}")
+            edits = sum(1 for k, v in setting.items() if (base.params if base else
+                                                          {k: p.default for k, p in ps.params.items()}).get(k) != v)
+            key = (-res[1], res[2], abs(res[0] - medoid.t_eod), edits)
+            if best is None or key < best[0]:
+                best = (key, template, setting, res)
+        if best is not None:
+            critics.append(best)
+    critics.sort(key=lambda c: (c[0], c[1]))
+    scored: list[tuple[tuple[int, int], Candidate]] = []
+    for ci, (_, template, setting, res) in enumerate(critics):
+        for pi, plan in enumerate(recovery_options(template, spec.m_star, recs, holding=preds[template].holding)):
+            critic = CriticDraft(template, setting, evidence=template, mode=plan.playbook or plan.recovery,
+                                 missing=plan_stages(plan, spec.m_star))
+            patched = parent.with_patch({f"c_{template}": critic}, {template: plan})
+            if patched.fingerprint() == parent.fingerprint():
+                continue  # the parent's own critic and plan: no patch
+            cand = Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], patched.edits_from(parent))
+            if rejected is not None and rejected(patched.fingerprint()):
+                continue
+            if build_error(patched) is not None:
+                continue
+            scored.append(((ci + pi, pi), cand))
+    scored.sort(key=lambda x: x[0])
+    return [c for _, c in scored[: params.max_candidates]]
 
 
 def stage_of(m_star: str) -> tuple[str, ...]:
@@ -223,6 +285,10 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     unknown = [p for p in parts if p not in recs]
     if unknown:
         return f"unknown recovery template {unknown[0]!r}"
+    if cand.plan.clear_when and cand.plan.clear_when not in preds:
+        return f"unknown clear_when predicate {cand.plan.clear_when!r}"
+    if cand.plan.max_steps < 1 or cand.plan.max_uses < 1:
+        return "max_steps and max_uses must be >= 1"
     try:
         resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
         for part in parts:

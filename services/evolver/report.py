@@ -73,6 +73,14 @@ def _plot_final(finals: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def _version_note(v: dict[str, Any]) -> str:
+    """" (seed 12 reached 4 milestones; validated)" for an internal version, "" when nothing was recorded."""
+    if "medoid_milestones" not in v:
+        return ""
+    who = f"seed {v['seed']}" if "seed" in v else "medoid"
+    return f" ({who} reached {v['medoid_milestones']} milestones{'; validated' if v.get('validated') else ''})"
+
+
 def interventions(store: RolloutStore, harnesses: set[str]) -> tuple[dict[str, tuple[int, int]], Counter[str]]:
     """For the given harness versions: (policy actions, recovery actions) each, and their
     interventions by kind, over every rollout they ran."""
@@ -133,11 +141,11 @@ def write_report(store: RolloutStore, out: Path, title: str, wall_s: float | Non
         _plot_versions(curves, out / "versions.png")
         lines += ["## Internal versions per cluster", "",
                   "v0 is the harness before the repair; each later version stacks the candidate that got the "
-                  "medoid furthest (or succeeded on it) and is measured on every seed of the cluster.", ""]
+                  "seed under repair furthest (or succeeded on it: validated) and is measured on every seed of "
+                  "the cluster. The seed under repair is the medoid, then a member the last validated version "
+                  "still failed.", ""]
         for c in curves:
-            pts = ", ".join(f"{v['version']} {v['successes']}/{v['episodes']}"
-                            + (f" (medoid reached {v['medoid_milestones']} milestones)" if "medoid_milestones" in v else "")
-                            for v in c["versions"])
+            pts = ", ".join(f"{v['version']} {v['successes']}/{v['episodes']}{_version_note(v)}" for v in c["versions"])
             tried = f"; {c['tried']} candidates tried" if "tried" in c else ""
             lines.append(f"- {c['cluster']}: {pts}{tried}")
         lines += ["", "![versions](versions.png)", ""]
@@ -153,6 +161,15 @@ def write_report(store: RolloutStore, out: Path, title: str, wall_s: float | Non
             lines.append(f"| {h} | {p} | {q} | {q / max(p + q, 1):.1%} |")
         lines += ["", "Interventions by kind: " + (", ".join(f"{k} {n}" for k, n in kinds.most_common()) or "none"),
                   "", f"Candidate harnesses run during validation and gating: {len(candidates)}.", ""]
+    joins = store.events("consolidation")
+    if joins:
+        lines += ["## Consolidation across clusters", "",
+                  "Largest cluster first; a further cluster's stack joins only if the merged harness still solves "
+                  "every seed of the clusters joined so far.", ""]
+        for j in joins:
+            lines.append(f"- {j['task']} round {j['round']} {j['cluster']} via {j['candidate']}: regression "
+                         f"{j['regression'][0]}/{j['regression'][1]}, " + ("joined" if j["joined"] else f"not joined ({j['reason']})"))
+        lines.append("")
     if gates:
         lines += ["## Gate decisions", ""]
         for g in gates:
@@ -165,7 +182,8 @@ def write_report(store: RolloutStore, out: Path, title: str, wall_s: float | Non
         lines.append("No candidate passed both gates: the harness stayed as it was.")
     for a in admitted:
         lines.append(f"- {a['ref']} (parent {a['parent']}, round {a['round']}): " + "; ".join(
-            f"{p['critic']}({p['template']} {json.dumps(p['params'])}) -> {p['recovery']}" for p in a["patches"])
+            f"{p['critic']}({p['template']} {json.dumps(p['params'])}) -> {p.get('playbook') or p['recovery']}"
+            for p in a["patches"])
             + f"; delta over bare {a['verdict']['delta_over_bare']:+.0%}")
     moves = store.split_moves()
     lines += ["", f"Split moves (held-out -> dev): {len(moves)}", ""]

@@ -8,6 +8,7 @@ they can be given its address.
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -36,8 +37,14 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
         return
     from zetta.local_stack import LocalStack
 
+    # Absolute: redis-server changes into its --dir before opening its --logfile.
+    workdir = workdir.resolve()
     workdir.mkdir(parents=True, exist_ok=True)
-    extra = {"ZETTA_TORCH_THREADS": "1", "ZETTA_LOG_LEVEL": "WARNING"}
+    # Batch-invariant serving unless the caller chose otherwise: with it an episode key replays bit
+    # for bit whatever else shares the policy worker's batch, so a medoid's validation rollout, its
+    # regression rollout and a resumed run's rollouts are the same episode (docs/harness-results.md).
+    extra = {"ZETTA_TORCH_THREADS": "1", "ZETTA_LOG_LEVEL": "WARNING",
+             "ZETTA_VLA_BATCH_INVARIANT": os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "1")}
     if video:
         extra["ZETTA_VIDEO_DIR"] = str(workdir / "videos")
     stack = LocalStack(env_workers=0, slots=slots, policy_workers=1, families=("libero",), models=(model,),

@@ -52,15 +52,17 @@ def test_param_grid_is_bounded_and_in_range() -> None:
 
 def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     """A drop cluster is a critic-layer false negative; the search pairs a grasp_lost critic that fires
-    near t_EOD on every member, silent on successes, with a regrasp-type recovery, gated on the
-    stage of m*; the resulting package loads and builds a runtime."""
+    near t_EOD on every member, silent on successes, with a playbook that starts by acquiring the
+    object again (never one that needs it in hand), granted at m*'s stage; the resulting package
+    loads and builds a runtime."""
     spec, medoid, members, succ = drop_cluster()
     assert spec.layer == "critic"
     cands = search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3))
     assert cands and cands[0].critic.template == "grasp_lost"
     best = cands[0]
     assert abs(best.fire_step - medoid.t_eod) <= 40 and best.coverage == 1.0 and best.false_positive == 0.0
-    assert best.plan.recovery in ("regrasp", "release_and_restage") and best.critic.missing == ("on",)
+    assert best.plan.playbook == "carry" and best.plan.recovery.startswith("regrasp+") and "on" in best.critic.missing
+    assert all(c.plan.playbook != "place" for c in cands)
     assert check_patch(PARENT, best, max_edits=3) is None
     runtime = HarnessRuntime(load_files(render(best.apply(PARENT))))
     assert [c.name for c in runtime.critics] == ["c_grasp_lost"]
@@ -91,18 +93,23 @@ def test_stage_of_is_the_milestone_kind() -> None:
     assert stage_of("on(wine_bottle_1,wine_rack_1)") == ("on",) and stage_of("<none>") == ()
 
 
-def test_consolidation_unions_critics_and_keeps_the_best_covering_setting() -> None:
-    """Two patches of one template keep the better-covering setting; different templates are unioned."""
+def test_consolidation_stacks_in_order_and_earlier_clusters_keep_their_settings() -> None:
+    """Within a cluster's stack a later patch replaces an earlier one of the same critic (it was
+    validated on top of it); across clusters critics are unioned and, on a clash, the earlier
+    (larger) cluster keeps the setting its historical regression measured."""
     a = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 1}, "grasp_lost", "regrasp"),
                   PlanDraft("regrasp"), 44, 0.5, 0.0, 2)
     b = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 3}, "grasp_lost", "release_and_restage"),
                   PlanDraft("release_and_restage"), 48, 1.0, 0.0, 2)
     c = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "pregrasp"), PlanDraft("pregrasp"),
                   10, 1.0, 0.0, 2)
-    merged = consolidate(PARENT, [a, b, c])
+    d = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 5}, "grasp_lost", "regrasp"),
+                  PlanDraft("regrasp"), 40, 1.0, 0.0, 2)
+    merged = consolidate(PARENT, [[a, b], [c, d]])
     assert set(merged.critics) == {"c_grasp_lost", "c_non_approach"}
     assert merged.critics["c_grasp_lost"].params == {"confirm": 3}
     assert merged.plans["grasp_lost"].recovery == "release_and_restage"
+    assert merged.plans["non_approach"].recovery == "pregrasp"
     assert consolidate(PARENT, []) == PARENT
     HarnessRuntime(load_files(render(merged)))
 

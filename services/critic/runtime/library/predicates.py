@@ -241,15 +241,15 @@ PREDICATES: dict[str, PredicateSpec] = {
         PredicateSpec("grasp_retained", grasp_retained, {
             "steps": _i(5, 1, 50, "frames the grasp must have held"),
             "max_drift": _f(0.02, 0.002, 0.1, "largest slip in the hand (m)"),
-        }, grasp_retained.__doc__ or ""),
+        }, grasp_retained.__doc__ or "", holding=True),
         PredicateSpec("grasp_lost", grasp_lost, {
             "confirm": _i(3, 1, 20, "frames without the grasp before it counts as lost"),
             "min_held": _i(5, 1, 50, "frames the grasp must have held in the window before"),
-        }, grasp_lost.__doc__ or ""),
+        }, grasp_lost.__doc__ or "", holding=False),
         PredicateSpec("failed_acquisition", failed_acquisition, {
             "closed_gap": _f(0.01, 0.0, 0.05, "finger gap (m) under which the hand counts as shut"),
             "near": _f(0.05, 0.0, 0.2, "grip site to object box (m) under which the closure was an attempt"),
-        }, failed_acquisition.__doc__ or ""),
+        }, failed_acquisition.__doc__ or "", holding=False),
         PredicateSpec("stalled_progress", stalled_progress, {
             "horizon": _i(30, 2, 200, "frames looked back"),
             "min_motion": _f(0.02, 0.0, 0.3, "path length of the hand (m) that counts as progress"),
@@ -258,24 +258,24 @@ PREDICATES: dict[str, PredicateSpec] = {
             "horizon": _i(20, 2, 200, "frames looked back"),
             "near": _f(0.015, 0.0, 0.2, "grip site to object box (m) that counts as arrived"),
             "min_gain": _f(0.01, 0.0, 0.2, "how much closer (m) the hand must have come"),
-        }, non_approach.__doc__ or ""),
+        }, non_approach.__doc__ or "", holding=False),
         PredicateSpec("approach_wrong_object", approach_wrong_object, {
             "horizon": _i(15, 2, 200, "frames looked back"),
             "near": _f(0.08, 0.01, 0.3, "distance (m) to the other object that counts as approaching it"),
             "min_gain": _f(0.03, 0.0, 0.3, "how much closer (m) to the other object"),
-        }, approach_wrong_object.__doc__ or ""),
+        }, approach_wrong_object.__doc__ or "", holding=False),
         PredicateSpec("drift", drift, {
             "max_drift": _f(0.03, 0.002, 0.2, "slip in the hand (m) that counts as drift"),
-        }, drift.__doc__ or ""),
+        }, drift.__doc__ or "", holding=True),
         PredicateSpec("held_near_target", held_near_target, {
             "radius": _f(0.06, 0.0, 0.3, "horizontal distance (m) of object to target centre"),
             "below": _f(0.0, 0.0, 0.1, "how far (m) the object bottom may be below the target top"),
-        }, held_near_target.__doc__ or ""),
+        }, held_near_target.__doc__ or "", holding=True),
         PredicateSpec("held_stalled_transport", held_stalled_transport, {
             "horizon": _i(25, 2, 200, "frames looked back"),
             "near": _f(0.03, 0.0, 0.3, "horizontal distance (m) to the target that counts as arrived"),
             "min_gain": _f(0.02, 0.0, 0.3, "how much closer (m) the object must have come"),
-        }, held_stalled_transport.__doc__ or ""),
+        }, held_stalled_transport.__doc__ or "", holding=True),
         PredicateSpec("supported_placement", supported_placement, {
             "inset": _f(0.0, -0.05, 0.1, "margin (m) inside the target box for the object centre"),
             "gap": _f(0.02, 0.0, 0.1, "largest height (m) of the object bottom over the target top"),

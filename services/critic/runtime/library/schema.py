@@ -46,6 +46,9 @@ class PredicateSpec:
     fn: Callable[..., Mapping[str, float] | None]
     params: Mapping[str, Param]
     doc: str
+    #: Whether the evidence implies the task object is held (True), not held (False) or says
+    #: nothing about it (None): a recovery that needs the object in hand is no answer to a drop.
+    holding: bool | None = None
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,114 @@
+"""Typed playbooks in the repair search: which plans a failure is offered, how they render and run,
+and what the runtime gets (budgets, clearing condition, a window long enough for every critic)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from services.critic.package.loader import load_files
+from services.critic.runtime.engine import HarnessRuntime
+from services.critic.runtime.library import PREDICATES, RECOVERIES
+from services.critic.runtime.library.playbooks import PLAYBOOKS, check_playbooks, serving
+from services.evolver.diagnose import Case, repair_spec
+from services.evolver.draft import CriticDraft, HarnessDraft, render
+from services.evolver.eod import t_eod
+from services.evolver.evolve import ClusterRepair, EvolveConfig, Evolution
+from services.evolver.gate import GateParams
+from services.evolver.profile import SuccessIndex
+from services.evolver.repair import Candidate, ReplayCase, SearchParams, plan_of, search
+from services.evolver.replay import first_fire
+from services.evolver.rollout import RunConfig
+from services.evolver.store import EpisodeKey, RolloutStore
+from tests.unit.test_evolver_fixtures import make_trace
+from tests.unit.test_evolver_store import outcome
+
+PARENT = HarnessDraft("evolved-9", ("9",))
+
+
+def test_library_playbooks_are_well_typed() -> None:
+    """Every playbook runs library recoveries with in-range arguments and a library clearing predicate."""
+    check_playbooks()
+    assert {s for p in PLAYBOOKS.values() for s in p.steps} <= set(RECOVERIES)
+    assert all(p.clear_when in PREDICATES for p in PLAYBOOKS.values() if p.clear_when)
+
+
+def test_serving_matches_the_stage_and_what_the_evidence_says_about_the_grasp() -> None:
+    """A playbook that needs the object in hand is never offered for a drop; for an object in hand
+    the playbook written for it comes before those that let go first; otherwise the longest first;
+    no pick-and-place playbook serves a drawer."""
+    assert [p.name for p in serving("reached", holding=False)] == ["carry", "acquire"]
+    assert [p.name for p in serving("on", holding=False)] == ["carry", "acquire"]
+    assert [p.name for p in serving("on", holding=True)] == ["place", "carry", "acquire"]
+    assert [p.name for p in serving("on", holding=None)] == ["carry", "place", "acquire"]
+    assert serving("open") == []
+
+
+def test_plan_of_a_playbook_carries_its_budgets_and_steps() -> None:
+    """A playbook name becomes the chain of its steps with its budgets; a template name stays itself."""
+    carry = plan_of("carry")
+    assert carry.recovery.split("+") == list(PLAYBOOKS["carry"].steps) and carry.playbook == "carry"
+    assert (carry.max_steps, carry.max_uses) == (PLAYBOOKS["carry"].max_steps, PLAYBOOKS["carry"].max_uses)
+    acquire = plan_of("acquire", {"regrasp": {"max_attempts": 2}})
+    assert acquire.recovery == "regrasp" and acquire.clear_when == "grasp_retained"
+    assert acquire.args == {"max_attempts": 2}
+    assert plan_of("pregrasp").playbook == "" and plan_of("pregrasp").recovery == "pregrasp"
+
+
+def test_a_policy_that_never_reaches_the_object_is_offered_a_carry_first() -> None:
+    """A miss cluster (m* = reached, no success to compare with) gets a non_approach critic paired
+    first with the playbook that acquires and places the object, then with acquisition alone,
+    granted at every pick-and-place stage; nothing that needs the object in hand is offered."""
+    misses = [make_trace("miss", s) for s in range(4, 8)]
+    index = SuccessIndex.build([])
+    eods = [t_eod(t, index) for t in misses]
+    detect = {n: first_fire(misses[0], p.fn, {k: v.default for k, v in p.params.items()})
+              for n, p in PREDICATES.items() if n not in ("grasp_retained", "supported_placement")}
+    spec = repair_spec("9/r1/K1", "key", Case(misses[0], eods[0], False, "reached(a)", {}, detect, 40), [])
+    medoid = ReplayCase(misses[0], eods[0].step, eods[0].referenced)
+    members = [ReplayCase(t, e.step, e.referenced) for t, e in zip(misses[1:], eods[1:])]
+    cands = search(spec, PARENT, medoid, members, [], SearchParams(max_candidates=4))
+    assert [c.plan.playbook for c in cands[:2]] == ["carry", "acquire"]
+    assert cands[0].critic.template == "non_approach" and cands[0].coverage == 1.0
+    assert {"reached", "on"} <= set(cands[0].critic.missing)
+    assert all(c.plan.playbook != "place" for c in cands)
+    runtime = HarnessRuntime(load_files(render(cands[0].apply(PARENT))))
+    plan = runtime.plans["carry_on_non_approach"]
+    assert plan.max_steps == PLAYBOOKS["carry"].max_steps and plan.max_uses == PLAYBOOKS["carry"].max_uses
+
+
+def test_rendered_window_covers_every_critic_horizon() -> None:
+    """The runtime gives critics at least their horizon in frames (a longer one would never fire
+    there, though the replay saw it fire), and the plan's clearing condition reaches the runtime."""
+    d = PARENT.with_patch({"c_stalled_progress": CriticDraft("stalled_progress", {"horizon": 120, "min_motion": 0.1},
+                                                             "stalled_progress", "acquire")},
+                          {"stalled_progress": plan_of("acquire")})
+    runtime = HarnessRuntime(load_files(render(d)))
+    assert d.window_frames() == 121 and runtime.window_size == 121
+    assert runtime.cooldown == PARENT.cooldown
+    assert runtime.plans["acquire_on_stalled_progress"].clear_when is not None
+    assert HarnessRuntime(load_files(render(PARENT))).window_size == PARENT.window
+
+
+def test_a_cluster_repair_passes_only_when_validated_and_solving_its_whole_cluster() -> None:
+    """Historical regression is measured per cluster with its own stack; 4/5 does not pass at 100 %."""
+    cand = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "carry"), plan_of("carry"),
+                     40, 1.0, 0.0, 2)
+    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3], (3, 3), "e@1").passes(GateParams(1.0))
+    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(1.0))
+    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(0.8))
+    assert not ClusterRepair({}, [], None, [1], (0, 1), "").passes(GateParams(0.0))
+
+
+def test_reference_index_takes_dev_successes_of_any_harness_but_never_heldout(tmp_path: Path) -> None:
+    """With a bare policy that never succeeds, I_succ comes from harnessed successes on dev seeds;
+    a held-out success, even on a seed that later moved to dev, never enters."""
+    store = RolloutStore(tmp_path)
+    dev, held = store.assign_splits("g", "9", dev=3, heldout=2)
+    profile = [store.add(EpisodeKey("g", "9", s, "", "profile"), outcome("miss", s)) for s in dev]
+    store.add(EpisodeKey("g", "9", dev[0], "e-candidate@1", "validate"), outcome("success", 1))
+    store.add(EpisodeKey("g", "9", dev[1], "e-candidate@1", "regress"), outcome("success", 2))
+    store.add(EpisodeKey("g", "9", held[0], "e@1", "heldout"), outcome("success", 3))
+    store.move_to_dev("g", "9", held[0], "test")
+    evo = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), None)
+    index = evo._reference_index("9", profile)
+    assert index.rollouts == 2 and index.states
