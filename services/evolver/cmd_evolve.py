@@ -100,10 +100,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--dev-seeds", type=int, default=50)
     p.add_argument("--heldout-seeds", type=int, default=20)
     p.add_argument("--name", default="evolved", help="harness name prefix (versions are <name>-<task>@N)")
-    p.add_argument("--max-clusters", type=int, default=2, help="clusters repaired per task and round, largest first")
-    p.add_argument("--max-candidates", type=int, default=3, help="candidate patches validated per cluster and depth")
-    p.add_argument("--max-depth", type=int, default=2,
-                   help="internal versions stacked per cluster while no candidate succeeds on the medoid")
+    p.add_argument("--max-clusters", type=int, default=EvolveConfig.max_clusters,
+                   help="clusters repaired per task and round, largest first")
+    p.add_argument("--max-candidates", type=int, default=SearchParams.max_candidates,
+                   help="candidate patches validated per cluster and depth")
+    p.add_argument("--max-depth", type=int, default=EvolveConfig.max_depth,
+                   help="internal versions stacked per cluster until one solves every cluster seed")
     p.add_argument("--regression-min", type=float, default=1.0,
                    help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
     p.add_argument("--eod-epsilon", type=float, default=EODParams().epsilon)

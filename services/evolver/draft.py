@@ -40,8 +40,9 @@ class PlanDraft:
     args: Mapping[str, Any] = field(default_factory=dict)
     max_uses: int = 3
     #: Actions the intervention may take, the wait for re-entry included: a recovery that cannot
-    #: clear its evidence gives control back after this many instead of holding to the episode's end.
-    max_steps: int = 300
+    #: clear its evidence gives control back after this many instead of holding to the episode's end
+    #: (half of LIBERO's 300-step budget for a single template; playbooks set their own).
+    max_steps: int = 150
     #: Library predicate that must hold before re-entry ("" = none).
     clear_when: str = ""
     #: The library playbook this plan instantiates ("" = a bare recovery template); names the mode.

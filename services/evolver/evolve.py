@@ -44,7 +44,7 @@ class EvolveConfig:
     dev_seeds: int = 50
     heldout_seeds: int = 20
     name: str = "evolved"
-    max_clusters: int = 2
+    max_clusters: int = 3
     eod: EODParams = EODParams()
     cluster: ClusterParams = ClusterParams()
     search: SearchParams = SearchParams()
@@ -52,7 +52,7 @@ class EvolveConfig:
     llm: LLMConfig | None = None
     max_edits: int = 3
     #: Internal versions stacked per cluster and round while no candidate succeeds on the medoid.
-    max_depth: int = 2
+    max_depth: int = 3
 
 
 @dataclass(frozen=True)

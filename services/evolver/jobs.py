@@ -86,8 +86,9 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
             "execute_steps": int(spec.get("execute_steps") or 2), "max_steps": int(spec.get("max_steps") or 0),
             "concurrency": int(spec.get("concurrency") or 2), "name": spec.get("name") or "evolved",
             "regression_min": float(spec.get("regression_min") or 1.0),
-            "max_clusters": int(spec.get("max_clusters") or 2), "max_candidates": int(spec.get("max_candidates") or 3),
-            "max_depth": int(spec.get("max_depth") or 2)}
+            "max_clusters": int(spec.get("max_clusters") or EvolveConfig.max_clusters),
+            "max_candidates": int(spec.get("max_candidates") or SearchParams.max_candidates),
+            "max_depth": int(spec.get("max_depth") or EvolveConfig.max_depth)}
 
 
 class JobManager:

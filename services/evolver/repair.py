@@ -82,7 +82,7 @@ class SearchParams:
     max_param_edits: int = 1
     grid_fraction: float = 0.25
     max_false_positive: float = 0.2
-    max_candidates: int = 4
+    max_candidates: int = 3
 
 
 def param_grid(schema: Mapping[str, Any], max_edits: int, fraction: float) -> list[dict[str, float]]:

@@ -7,6 +7,7 @@ import asyncio
 import grpc
 
 from services.common import grpc_errors as ge
+from services.evolver.evolve import EvolveConfig
 from services.evolver.jobs import Job, JobError, JobManager, success_counts
 from services.evolver.store import RolloutStore
 from zetta.v1 import evolver_pb2, evolver_pb2_grpc
@@ -38,7 +39,7 @@ def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
             heldout_seeds=int(s["heldout_seeds"]), model=str(s["model"]), execute_steps=int(s["execute_steps"]),
             max_steps=int(s["max_steps"]), concurrency=int(s["concurrency"]), name=str(s["name"]),
             regression_min=float(s["regression_min"]), max_clusters=int(s["max_clusters"]),
-            max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", 2))))
+            max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", EvolveConfig.max_depth))))
     if (job.root / "store" / "index.sqlite").exists():
         store = RolloutStore(job.root / "store")
         try:
