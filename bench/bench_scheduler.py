@@ -3,11 +3,16 @@
 The model is synthetic, ``cost(n) = a + b * n`` seconds per batch of n, spent in ``time.sleep``
 (which, like a GPU kernel wait, releases the GIL). ``a`` stands for the fixed per-call overhead
 (kernel launches, Python, transfers) that batching amortises, ``b`` for the per-sample work it
-cannot. Closed-loop submitters (each sends its next request as soon as the previous returns, like
-env workers stepping episodes) keep the offered load identical across configurations, so the
-only thing that changes between columns is the batch limit.
+cannot. Closed-loop submitters (each sends its next request ``--think`` seconds after the
+previous one returns, like env workers that step an action chunk between requests) keep the
+offered load identical across configurations, so the only things that change between rows are
+the batch limit and, with ``--early-dispatch both``, whether a partial batch goes out at once when
+every submitter seen lately is waiting (the scheduler's early dispatch) or waits out
+``max_queue_delay``. Both settings run in the same invocation, interleaved, medians of
+``--repeats``.
 
     python bench/bench_scheduler.py [--submitters 64] [--a 0.002] [--b 0.0001] [--duration 1.0]
+    python bench/bench_scheduler.py --submitters 1 --think 0.02 --max-queue-delay 0.005 --max-batch 32
 """
 
 from __future__ import annotations
@@ -65,9 +70,9 @@ def synthetic_model(a: float, b: float) -> RunBatch:
     return run_batch
 
 
-async def one_run(max_batch: int, args: argparse.Namespace) -> RunResult:
+async def one_run(max_batch: int, early_dispatch: bool, args: argparse.Namespace) -> RunResult:
     observer = _BatchSizes()
-    config = SchedulerConfig(max_batch=max_batch, max_queue_delay=args.max_queue_delay)
+    config = SchedulerConfig(max_batch=max_batch, max_queue_delay=args.max_queue_delay, early_dispatch=early_dispatch)
     scheduler = BatchScheduler(synthetic_model(args.a, args.b), config, observer)
     state = np.zeros(32, dtype=np.float32)
     latencies: list[float] = []
@@ -85,6 +90,8 @@ async def one_run(max_batch: int, args: argparse.Namespace) -> RunResult:
             if done <= stop:
                 latencies.append(done - sent)
             k += 1
+            if args.think:
+                await asyncio.sleep(args.think)
 
     await asyncio.gather(*(submitter(i) for i in range(args.submitters)))
     await scheduler.drain()
@@ -100,24 +107,29 @@ async def one_run(max_batch: int, args: argparse.Namespace) -> RunResult:
 async def main(args: argparse.Namespace) -> None:
     print(
         f"synthetic model: {args.a * 1e3:.1f} ms + {args.b * 1e3:.2f} ms/item per batch; "
-        f"{args.submitters} closed-loop submitters; max_queue_delay {args.max_queue_delay * 1e3:.1f} ms; "
-        f"{args.duration:.1f} s per run, median of {args.repeats}"
+        f"{args.submitters} closed-loop submitters, think {args.think * 1e3:.1f} ms; max_queue_delay "
+        f"{args.max_queue_delay * 1e3:.1f} ms; {args.duration:.1f} s per run, median of {args.repeats}"
     )
+    settings = {"on": [True], "off": [False], "both": [True, False]}[args.early_dispatch]
     rows = []
     for max_batch in args.max_batch:
-        runs = [await one_run(max_batch, args) for _ in range(args.repeats)]
-        median = sorted(runs, key=lambda run: run.items_per_s)[len(runs) // 2]
+        runs: dict[bool, list[RunResult]] = {e: [] for e in settings}
+        for _ in range(args.repeats):  # the settings interleaved, so drifting load weighs on both
+            for early in settings:
+                runs[early].append(await one_run(max_batch, early, args))
         ideal = max_batch / (args.a + args.b * max_batch)
-        rows.append((max_batch, median, ideal, statistics.pstdev(run.items_per_s for run in runs)))
-    base = rows[0][1].items_per_s
+        for early in settings:
+            median = sorted(runs[early], key=lambda run: run.items_per_s)[len(runs[early]) // 2]
+            rows.append((max_batch, early, median, ideal, statistics.pstdev(run.items_per_s for run in runs[early])))
+    base = rows[0][2].items_per_s
     print(
-        f"{'max_batch':>9} {'items/s':>9} {'+-':>6} {'ideal':>7} {'speedup':>8} "
+        f"{'max_batch':>9} {'early':>5} {'items/s':>9} {'+-':>6} {'ideal':>7} {'speedup':>8} "
         f"{'mean batch':>11} {'p50 ms':>7} {'p99 ms':>7}"
     )
-    for max_batch, run, ideal, spread in rows:
+    for max_batch, early, run, ideal, spread in rows:
         print(
-            f"{max_batch:>9} {run.items_per_s:>9.0f} {spread:>6.0f} {ideal:>7.0f} {run.items_per_s / base:>7.1f}x "
-            f"{run.mean_batch:>11.1f} {run.p50_ms:>7.1f} {run.p99_ms:>7.1f}"
+            f"{max_batch:>9} {'on' if early else 'off':>5} {run.items_per_s:>9.0f} {spread:>6.0f} {ideal:>7.0f} "
+            f"{run.items_per_s / base:>7.1f}x {run.mean_batch:>11.1f} {run.p50_ms:>7.1f} {run.p99_ms:>7.1f}"
         )
 
 
@@ -127,6 +139,10 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--a", type=float, default=0.002, help="fixed seconds per batch")
     parser.add_argument("--b", type=float, default=0.0001, help="seconds per item in a batch")
     parser.add_argument("--max-queue-delay", type=float, default=0.002)
+    parser.add_argument("--think", type=float, default=0.0,
+                        help="seconds a submitter waits after an answer before its next request")
+    parser.add_argument("--early-dispatch", choices=("on", "off", "both"), default="both",
+                        help="the scheduler's early dispatch (default: both, side by side)")
     parser.add_argument("--duration", type=float, default=1.0, help="seconds per run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-batch", type=int, nargs="+", default=[1, 4, 16, 32])

@@ -12,7 +12,15 @@ When a batch is dispatched:
     has waited ``max_queue_delay`` seconds, whichever comes first; while every worker thread is
     busy nothing goes out, so queues keep filling and the next batches are larger: under load
     batch size adapts to compute time without tuning;
-  * when several groups are ready, the one whose oldest item arrived first is served first.
+  * when several groups are ready, the one whose oldest item arrived first is served first;
+  * a group is also ready at once when waiting cannot grow its batch: its queued and running
+    items together are as many as it ever held at one time over the last ``PEAK_WINDOW_SECONDS``
+    (and at least one). Requesters in a closed loop (an env worker's slot asks, waits for the
+    answer, steps, asks again) cannot send a second request before the first is answered, so
+    when every requester seen lately is already waiting, the delay would only add latency: with
+    one session it cost every action chunk ``max_queue_delay``. A group with no history (the
+    first request) goes out at once for the same reason; the peak follows the load up at once
+    and down within two windows.
 
 Deadline rule: a request is failed with :class:`DeadlineExceededError`, without running, when at
 submit or at dispatch its deadline has passed, or when it is earlier than ``now`` plus the
@@ -58,6 +66,10 @@ _ESTIMATE_WEIGHT = 0.2
 ESTIMATE_TTL_SECONDS = 5.0
 # A retry hint of zero would invite a busy loop of retries against a full queue.
 _MIN_RETRY_AFTER = 0.001
+#: How long the most items a group held at once is remembered (see the module doc): long enough
+#: to span many request cycles of a closed-loop client (tens of ms), short enough that a group
+#: whose load fell stops waiting for requesters that left within a few seconds.
+PEAK_WINDOW_SECONDS = 2.0
 
 
 class SchedulerError(Exception):
@@ -112,6 +124,9 @@ class SchedulerConfig:
     max_queue_delay: float = 0.005
     max_queue: int = 1024
     workers: int = 1
+    #: Dispatch a partial batch at once when every requester seen lately is waiting (module doc);
+    #: False waits out ``max_queue_delay`` regardless (what bench/bench_scheduler.py compares).
+    early_dispatch: bool = True
 
     def __post_init__(self) -> None:
         for name in ("max_batch", "max_queue", "workers"):
@@ -121,6 +136,8 @@ class SchedulerConfig:
         delay = self.max_queue_delay
         if isinstance(delay, bool) or not isinstance(delay, (int, float)) or not math.isfinite(delay) or delay < 0:
             raise ValueError(f"SchedulerConfig.max_queue_delay must be a finite number of seconds >= 0, got {delay!r}")
+        if not isinstance(self.early_dispatch, bool):
+            raise ValueError(f"SchedulerConfig.early_dispatch must be a bool, got {self.early_dispatch!r}")
         if self.max_queue < self.max_batch:
             raise ValueError(
                 f"SchedulerConfig.max_queue ({self.max_queue}) must be >= max_batch ({self.max_batch}), "
@@ -228,6 +245,40 @@ class _Group:
         self.queue: deque[InferItem] = deque()
 
 
+class _Occupancy:
+    """Items of one group in the scheduler (queued or running) and the most it held at once lately.
+
+    The peak is kept over two consecutive windows of ``PEAK_WINDOW_SECONDS`` (the current one and
+    the one before), so it forgets a burst between one and two windows after it ended.
+    """
+
+    __slots__ = ("running", "current", "previous", "window_start")
+
+    def __init__(self, now: float) -> None:
+        self.running = 0
+        self.current = 0
+        self.previous = 0
+        self.window_start = now
+
+    def _roll(self, now: float) -> None:
+        elapsed = now - self.window_start
+        if elapsed >= PEAK_WINDOW_SECONDS:
+            self.previous = self.current if elapsed < 2 * PEAK_WINDOW_SECONDS else 0
+            self.current = 0
+            self.window_start = now
+
+    def arrived(self, in_system: int, now: float) -> None:
+        """Record that the group holds ``in_system`` items now (after an arrival)."""
+        self._roll(now)
+        if in_system > self.current:
+            self.current = in_system
+
+    def peak(self, now: float) -> int:
+        """The most items the group held at once over the last one to two windows."""
+        self._roll(now)
+        return max(self.current, self.previous)
+
+
 class BatchScheduler:
     """Dynamic batcher: ``await submit(item)`` returns the item's row of its batch's output.
 
@@ -253,6 +304,7 @@ class BatchScheduler:
         self._depth: dict[str, int] = {}
         self._estimates: dict[GroupKey, float] = {}
         self._estimated_at: dict[GroupKey, float] = {}
+        self._occupancy: dict[GroupKey, _Occupancy] = {}
         self._busy = 0
         self._closing = False
         self._dispatcher: asyncio.Task[None] | None = None
@@ -309,13 +361,19 @@ class BatchScheduler:
         self._waiters[token] = future
         queue = group.queue
         queue.append(item)
+        occupancy = self._occupancy.get(key)
+        if occupancy is None:
+            occupancy = self._occupancy[key] = _Occupancy(item.arrival)
+        occupancy.arrived(len(queue) + occupancy.running, time.monotonic())
         depth = self._depth[model] = self._depth.get(model, 0) + 1
         self._observer.on_queue_depth(model, depth)
         if self._dispatcher is None:
             self._dispatcher = loop.create_task(self._dispatch_loop(), name="policy-batch-dispatcher")
-        elif len(queue) == 1 or len(queue) == config.max_batch:
-            # A new head arms a new delay timer, a full queue is ready now; any other arrival
-            # does not change when the next dispatch is due.
+        elif (len(queue) == 1 or len(queue) == config.max_batch
+              or self._all_waiting(occupancy, len(queue), time.monotonic())):
+            # A new head arms a new delay timer, a full queue is ready now, and so is a group
+            # whose requesters are all waiting; any other arrival does not change when the next
+            # dispatch is due.
             self._kick()
         try:
             return await future
@@ -401,7 +459,9 @@ class BatchScheduler:
         """The ready group whose oldest item arrived first, else how long until one is due.
 
         Groups not yet ready are not served ahead of ready ones even if older: dispatching them
-        early would only shrink their batch while a full one waits.
+        early would only shrink their batch while a full one waits. A group is ready when full,
+        when its head waited ``max_queue_delay``, or when no other requester is expected (see the
+        module doc).
         """
         config = self._config
         delay = config.max_queue_delay
@@ -414,12 +474,17 @@ class BatchScheduler:
             queue = group.queue
             head_arrival = queue[0].arrival
             due_in = head_arrival + delay - now
-            if closing or due_in <= 0 or len(queue) >= max_batch:
+            if (closing or due_in <= 0 or len(queue) >= max_batch
+                    or self._all_waiting(self._occupancy[key], len(queue), now)):
                 if head_arrival < best_arrival:
                     best, best_arrival = key, head_arrival
             elif timeout is None or due_in < timeout:
                 timeout = due_in
         return best, timeout
+
+    def _all_waiting(self, occupancy: _Occupancy, queued: int, now: float) -> bool:
+        """Whether the group holds as many items as it ever did lately: no absent requester to wait for."""
+        return self._config.early_dispatch and queued + occupancy.running >= occupancy.peak(now)
 
     def _dispatch(self, key: GroupKey, now: float) -> None:
         group = self._groups[key]
@@ -452,6 +517,7 @@ class BatchScheduler:
         observer.on_queue_depth(model, depth)
         if batch:
             self._busy += 1
+            self._occupancy[key].running += len(batch)
             running = asyncio.get_running_loop().run_in_executor(self._executor, self._compute, model, batch)
             running.add_done_callback(functools.partial(self._finished, key, model, batch))
 
@@ -463,6 +529,7 @@ class BatchScheduler:
         running: asyncio.Future[tuple[np.ndarray, float]],
     ) -> None:
         self._busy -= 1
+        self._occupancy[key].running -= len(batch)
         # Refill the worker before waking the callers: their wake-ups and next submits cost loop
         # time, and a batch already waiting in the queue should not sit behind them.
         self._pump()

@@ -129,11 +129,72 @@ async def test_max_queue_delay_dispatches_partial_batch() -> None:
     model = FakeModel()
     config = SchedulerConfig(max_batch=8, max_queue_delay=0.05)
     async with BatchScheduler(model, config) as scheduler:
+        # Eight requesters were seen at once: three of them waiting can still be joined by others.
+        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(8))), GUARD)
         start = time.monotonic()
         await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"t{i}")) for i in range(3))), GUARD)
         elapsed = time.monotonic() - start
-    assert model.sizes == [3]
+    assert model.sizes == [8, 3]
     assert 0.04 <= elapsed < 1.0
+
+
+@pytest.mark.asyncio
+async def test_lone_closed_loop_requester_does_not_wait_out_the_delay() -> None:
+    """One session asks, waits for its answer, asks again: no second request can join its batch,
+    so the scheduler must not hold it for max_queue_delay (which used to cost every action chunk)."""
+    model = FakeModel()
+    async with BatchScheduler(model, SchedulerConfig(max_batch=8, max_queue_delay=10.0)) as scheduler:
+        start = time.monotonic()
+        for i in range(5):
+            await asyncio.wait_for(scheduler.submit(make_item(f"t{i}", i)), GUARD)
+        assert time.monotonic() - start < 1.0
+    assert model.sizes == [1, 1, 1, 1, 1]
+
+
+@pytest.mark.asyncio
+async def test_closed_loop_requesters_wait_only_while_one_is_missing() -> None:
+    """Four requesters seen at once: three waiting hold for the fourth (not for the delay once it
+    comes), and once all four wait the batch goes at once."""
+    model = FakeModel()
+    async with BatchScheduler(model, SchedulerConfig(max_batch=8, max_queue_delay=10.0)) as scheduler:
+        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(4))), GUARD)
+        first = [asyncio.create_task(scheduler.submit(make_item(f"a{i}"))) for i in range(3)]
+        await asyncio.sleep(0.05)
+        assert not any(t.done() for t in first)  # a fourth requester may still come
+        start = time.monotonic()
+        last = asyncio.create_task(scheduler.submit(make_item("a3")))
+        await asyncio.wait_for(asyncio.gather(*first, last), GUARD)
+        assert time.monotonic() - start < 1.0
+    assert model.sizes == [4, 4]
+
+
+@pytest.mark.asyncio
+async def test_without_early_dispatch_a_lone_requester_waits_out_the_delay() -> None:
+    model = FakeModel()
+    config = SchedulerConfig(max_batch=8, max_queue_delay=0.05, early_dispatch=False)
+    async with BatchScheduler(model, config) as scheduler:
+        start = time.monotonic()
+        await asyncio.wait_for(scheduler.submit(make_item("t")), GUARD)
+        assert time.monotonic() - start >= 0.04
+    assert model.sizes == [1]
+
+
+@pytest.mark.asyncio
+async def test_requesters_peak_is_forgotten_after_the_window(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A burst long gone does not make a lone requester wait: the peak lasts one to two windows."""
+    from services.policy_worker import scheduler as sched
+
+    model = FakeModel()
+    async with BatchScheduler(model, SchedulerConfig(max_batch=8, max_queue_delay=10.0)) as scheduler:
+        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(6))), GUARD)
+        pending = asyncio.create_task(scheduler.submit(make_item("held")))
+        await asyncio.sleep(0.05)
+        assert not pending.done()  # six were seen at once: this one waits for company
+        pending.cancel()
+        monkeypatch.setattr(sched, "PEAK_WINDOW_SECONDS", 0.01)
+        await asyncio.sleep(0.03)  # two windows without a request
+        await asyncio.wait_for(scheduler.submit(make_item("alone")), 1.0)
+    assert model.sizes == [6, 1]
 
 
 @pytest.mark.asyncio
@@ -417,6 +478,7 @@ async def test_non_array_input_is_rejected_alone() -> None:
         ({"max_queue_delay": -0.001}, "max_queue_delay"),
         ({"max_queue_delay": float("nan")}, "max_queue_delay"),
         ({"max_batch": 64, "max_queue": 32}, "max_queue"),
+        ({"early_dispatch": 1}, "early_dispatch"),
     ],
 )
 def test_config_validation(kwargs: dict, field: str) -> None:
