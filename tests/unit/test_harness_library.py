@@ -188,6 +188,19 @@ def test_grasp_proposals_are_object_relative_and_skip_failed_ones() -> None:
     assert t.fresh_grasp(OBJ, proposals, tolerance=0.008) is None
 
 
+def test_objects_wider_than_the_hand_are_gripped_by_the_rim() -> None:
+    """A bowl (11 cm both ways) gets rim grasps: the grip point just inside one edge, fingers closing
+    across that wall, below the rim's top; every side is proposed once per depth, none at the centre."""
+    bowl = np.array([-0.14, -0.05, 0.90, -0.03, 0.06, 0.95])
+    proposals = t.sample_grasps(bowl)
+    assert len(proposals) == 8 and len({(p.offset, p.finger_axis) for p in proposals}) == 8
+    for p in proposals:
+        half = (bowl[3 + p.finger_axis] - bowl[p.finger_axis]) / 2
+        assert abs(p.offset[p.finger_axis]) == pytest.approx(half - 0.012)
+        assert p.offset[1 - p.finger_axis] == 0.0 and -0.03 < p.offset[2] < 0.0
+        assert bowl[2] < p.point(bowl)[2] < bowl[5]
+
+
 def test_orientation_action_is_zero_when_aligned() -> None:
     quat_down = np.array([1.0, 0.0, 0.0, 0.0])
     assert t.orient_action(quat_down, t.DOWN) == pytest.approx(np.zeros(3), abs=1e-9)

@@ -171,19 +171,30 @@ class GraspProposal:
 
 
 def sample_grasps(box: np.ndarray, max_width: float = 0.07, depths: Sequence[float] = (0.03, 0.015, 0.045),
-                  shifts: Sequence[float] = (0.0, 0.012, -0.012), min_height: float = 0.012) -> list[GraspProposal]:
+                  shifts: Sequence[float] = (0.0, 0.012, -0.012), min_height: float = 0.012,
+                  rim_inset: float = 0.012, rim_depths: Sequence[float] = (0.02, 0.012)) -> list[GraspProposal]:
     """Object-relative grasp proposals, best first.
 
     Axes across which the object is narrower than ``max_width`` (the open hand's reach) come first,
     narrowest first; for each, grip depths below the top (not lower than ``min_height`` above the
-    bottom), then small shifts along the object's long horizontal side.
+    bottom), then small shifts along the object's long horizontal side. An object wider than the
+    hand both ways (a bowl, a plate) cannot be gripped across: it is gripped by its rim, the grip
+    point ``rim_inset`` inside one edge with the fingers closing across the wall (one inside, one
+    outside), ``rim_depths`` below the top; each of the four sides in turn.
     """
     widths = [float(box[3] - box[0]), float(box[4] - box[1])]
     height = float(box[5] - box[2])
     axes = sorted((0, 1), key=lambda a: widths[a])
-    axes = [a for a in axes if widths[a] <= max_width] or axes[:1]
     out: list[GraspProposal] = []
-    for axis in axes:
+    if not any(widths[a] <= max_width for a in axes):
+        for axis in axes:
+            for sign in (1.0, -1.0):
+                for depth in rim_depths:
+                    offset = [0.0, 0.0, -min(depth, max(height - min_height, 0.0))]
+                    offset[axis] = sign * max(widths[axis] / 2 - rim_inset, 0.0)
+                    out.append(GraspProposal((offset[0], offset[1], offset[2]), axis))
+        return out
+    for axis in (a for a in axes if widths[a] <= max_width):
         along = 1 - axis
         for depth in depths:
             dz = -min(depth, max(height - min_height, 0.0))
