@@ -2,6 +2,7 @@
 
   zetta evolve --suite libero_goal_task --tasks 6,9 --rounds 2 --dev-seeds 50 --heldout-seeds 20
   zetta evolve export --store DIR --out DATASET     (LeRobot-style parquet + mp4 of the stored rollouts)
+  zetta evolve experiment [--suites ...] [--tasks 0-9] (every task of several suites + transfer, one summary)
 
 Without --gateway a local stack is started (Redis, gateway, critic service, a policy worker
 serving --model, env workers). Everything is filed in --store first: stop it (Ctrl-C) and run the
@@ -93,6 +94,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "export":
         return _export(argv[1:])
+    if argv and argv[0] == "experiment":
+        from services.evolver.cmd_experiment import main as experiment
+
+        return experiment(argv[1:])
     p = argparse.ArgumentParser(prog="zetta evolve", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     add_run_args(p)
