@@ -16,7 +16,9 @@ once, then replayed), because a policy that grasps makes contact-rich, costlier 
 actions do. ``--against REV`` also measures another revision of the code (exported with
 ``git archive`` to a temporary directory; the working tree is not touched) in the same run: child
 processes alternate between the two trees, each figure is the median over ``--repeats`` children,
-so load that drifts on a shared machine weighs on both alike.
+so load that drifts on a shared machine weighs on both alike. Every child also hashes each replayed
+step's observation, reward, success and info (untimed): the report says whether all runs of both
+trees agree bit for bit, so a speed-up that changes behaviour shows.
 
     python bench/bench_step_path.py                    # this tree, 3 repeats (about 1 minute)
     python bench/bench_step_path.py --against HEAD~1   # this tree against the previous commit
@@ -141,9 +143,30 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
             cpu[path] += run(path, actions)
         steps += len(actions)
     out: dict[str, Any] = {p: 1000.0 * cpu[p] / steps for p in PATHS}
+    out["digest"] = _digest(slot, recorded, keys)
     if parts:
         out["parts"] = _parts(slot, recorded, keys)
     return out
+
+
+def _digest(slot: Any, recorded: Any, keys: list[str]) -> str:
+    """A hash of every observation tensor, reward, success and info of the replayed episodes: two
+    trees that agree on it behave the same on these steps, bit for bit."""
+    import hashlib
+
+    from services.env_worker.families.base import ResetSpec
+
+    h = hashlib.blake2b(digest_size=16)
+    for key in keys:
+        obs, _ = slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=int(key)))
+        for a in recorded[key]:
+            for name in sorted(obs):
+                h.update(name.encode())
+                h.update(np.ascontiguousarray(obs[name]).tobytes())
+            outcome = slot.step(a, render=False)
+            obs = outcome.observation
+            h.update(repr((outcome.reward, outcome.success, outcome.terminated, sorted(outcome.info.items()))).encode())
+    return h.hexdigest()
 
 
 def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
@@ -259,7 +282,11 @@ def main() -> None:
                     f"{k} {v:.3f}" for k, v in results[name][-1].items() if k in PATHS) + " CPU ms/step")
     medians = {name: {k: statistics.median(run[k] for run in runs) for k in PATHS} for name, runs in results.items()}
     names = list(trees)
-    print(f"\nCPU ms per action (thread time, resets excluded), median of {args.repeats}; load average "
+    digests = {run["digest"] for runs in results.values() for run in runs}
+    print("\nobservations, rewards and success of every replayed step: "
+          + ("identical in every run" + (" of both trees" if len(names) == 2 else "") if len(digests) == 1
+             else f"DIFFER ({len(digests)} distinct digests: {', '.join(sorted(digests))})"))
+    print(f"CPU ms per action (thread time, resets excluded), median of {args.repeats}; load average "
           f"{os.getloadavg()[0]:.1f} at the end")
     header = f"{'path':<28}" + "".join(f"{n:>14}" for n in names) + (f"{'change':>10}" if len(names) == 2 else "")
     print(header)

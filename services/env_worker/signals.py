@@ -15,6 +15,7 @@ end-effector position) and is reset with the episode. Nothing here imports robos
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -76,24 +77,37 @@ class Contacts:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
 
-def read_contacts(model: object, data: object) -> Contacts:
-    """Contacts of a raw ``mujoco.MjModel``/``MjData`` with world-frame forces (``mj_contactForce``)."""
+def read_contacts(model: object, data: object, involving: frozenset[int] | None = None) -> Contacts:
+    """Contacts of a raw ``mujoco.MjModel``/``MjData`` with world-frame forces (``mj_contactForce``).
+
+    ``involving``: keep only the contacts with at least one geom in this set (all when None), in
+    MuJoCo's order. The signals only ask about the robot's contacts, while a tabletop scene holds
+    many more between objects at rest, each of which would cost an ``mj_contactForce`` call.
+    """
     import mujoco  # lazily: importing this module must not load a simulator
 
     n = int(data.ncon)  # type: ignore[attr-defined]
     if n == 0:
         return Contacts.empty()
     contact = data.contact  # type: ignore[attr-defined]
-    frames = np.asarray(contact.frame[:n]).reshape(n, 3, 3)
-    local = np.zeros((n, 6))
+    geom1, geom2 = contact.geom1[:n].tolist(), contact.geom2[:n].tolist()
+    if involving is None:
+        keep = list(range(n))
+    else:
+        keep = [i for i, (g1, g2) in enumerate(zip(geom1, geom2)) if g1 in involving or g2 in involving]
+        if not keep:
+            return Contacts.empty()
+    m = len(keep)
+    frames = np.asarray(contact.frame[keep]).reshape(m, 3, 3)
+    local = np.zeros((m, 6))
     buf = np.zeros(6)
-    for i in range(n):
+    for row, i in enumerate(keep):
         mujoco.mj_contactForce(model, data, i, buf)
-        local[i] = buf
+        local[row] = buf
     force = np.einsum("nij,ni->nj", frames, local[:, :3])  # frame rows: normal, tangent1, tangent2
     return Contacts(
-        np.array(contact.geom1[:n], dtype=np.int64),
-        np.array(contact.geom2[:n], dtype=np.int64),
+        np.array([geom1[i] for i in keep], dtype=np.int64),
+        np.array([geom2[i] for i in keep], dtype=np.int64),
         force,
         np.abs(local[:, 0]),
     )
@@ -193,6 +207,11 @@ class GripperGeoms:
     right: frozenset[int]
     gripper: frozenset[int]  # hand and both fingers
     robot: frozenset[int]  # every geom of the arm and the gripper
+
+    @functools.cached_property
+    def all_geoms(self) -> frozenset[int]:
+        """Every geom above: the contacts the signals read are those involving one of these."""
+        return self.left | self.right | self.gripper | self.robot
 
 
 @dataclass(frozen=True)

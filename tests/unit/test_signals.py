@@ -61,6 +61,21 @@ def test_contact_force_of_a_resting_box_is_its_weight() -> None:
     assert sig.collision_intensity(contacts, box, floor) == 0.0
 
 
+def test_contacts_involving_some_geoms_are_those_rows_of_all_contacts() -> None:
+    model, data = _pinch_state(0.04)  # pads squeeze the box; nothing else touches
+    everything = sig.read_contacts(model, data)
+    left = _gid(model, "left")
+    assert len(everything.geom1) >= 2
+    only = sig.read_contacts(model, data, frozenset({left}))
+    rows = [i for i in range(len(everything.geom1)) if left in (everything.geom1[i], everything.geom2[i])]
+    assert 0 < len(rows) < len(everything.geom1)
+    for field in ("geom1", "geom2", "force", "normal"):  # the same values, bit for bit, in MuJoCo's order
+        assert np.array_equal(getattr(only, field), getattr(everything, field)[rows])
+    assert len(sig.read_contacts(model, data, frozenset({_gid(model, "wall")})).geom1) == 0
+    geoms = _geoms(model)
+    assert geoms.all_geoms == geoms.left | geoms.right | geoms.gripper | geoms.robot
+
+
 def test_free_fall_velocity() -> None:
     model = mujoco.MjModel.from_xml_string(BOX_ON_PLANE)
     data = mujoco.MjData(model)

@@ -238,7 +238,7 @@ class TaskState:
     def observe(self, action: np.ndarray | None) -> dict[str, np.ndarray]:
         """Task tensors of the current state; ``action`` is the one just executed (None at reset)."""
         model, data = _raw(self.env)
-        self._contacts = sig.read_contacts(model, data)
+        self._contacts = sig.read_contacts(model, data, self._geoms.all_geoms)  # only the robot's are read
         self._boxes = {}
         if not self._started:
             self.tracker.start(self)
