@@ -191,6 +191,28 @@ def test_same_episode_key_replays_identically(libero, libero_slot) -> None:
     assert not np.array_equal(first[0]["task_object_pos"], moved[0]["task_object_pos"])
 
 
+def test_a_step_evaluates_each_goal_predicate_once(libero_slot, monkeypatch: pytest.MonkeyPatch) -> None:
+    """LIBERO's reward, the milestones and the success check read the predicates of one state: a
+    step evaluates each once, and outside a step nothing is reused."""
+    libero_slot.reset(ResetSpec(CREAM_CHEESE, seed=1, init_state_index=0))
+    env = libero_slot._env
+    evaluate = type(env)._eval_predicate
+    calls: list[tuple[str, ...]] = []
+
+    def counted(self, state):  # type: ignore[no-untyped-def]
+        calls.append(tuple(state))
+        return evaluate(self, state)
+
+    monkeypatch.setattr(type(env), "_eval_predicate", counted)
+    outcome = libero_slot.step(np.zeros(7, np.float32))
+    goal = {tuple(p) for p in env.parsed_problem["goal_state"]}
+    assert goal <= set(calls) and len(calls) == len(set(calls))
+    assert "_eval_predicate" not in vars(env), "the env's own method is back after the step"
+    calls.clear()
+    assert outcome.success == env._check_success() == env._check_success()
+    assert len(calls) == 2 * len(goal)
+
+
 def test_slots_share_compiled_model_and_warm_envs(libero, libero_slot) -> None:
     before = libero.sharing_stats()
     assert before["models_compiled"] == 1

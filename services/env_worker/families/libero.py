@@ -19,10 +19,11 @@ The variant of a LIBERO-PRO suite is part of the suite name (``libero_goal_swap`
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -265,6 +266,36 @@ class LiberoFamily(PooledGroup, EnvFamily):
         )
 
 
+@contextlib.contextmanager
+def _predicates_memoized(env: Any) -> Iterator[None]:
+    """Within the block, each of the env's BDDL predicates is evaluated once per simulation time.
+
+    A step evaluates the goal predicates three times over one state: LIBERO's reward calls
+    ``_check_success``, the milestones ask whether each stage holds, and the slot asks for success.
+    A predicate reads only the simulator state, so its value at one simulation time is reused; the
+    time is part of the key, so nothing evaluated before the step's physics is reused after it.
+    """
+    evaluate = env._eval_predicate
+    data = env.sim.data._data
+    memo: dict[tuple[Any, ...], Any] = {}
+
+    def memoized(state: Any) -> Any:
+        key = (data.time, *state)
+        try:
+            return memo[key]
+        except KeyError:
+            value = memo[key] = evaluate(state)
+            return value
+        except TypeError:  # an argument that is not hashable: no reuse
+            return evaluate(state)
+
+    env._eval_predicate = memoized
+    try:
+        yield
+    finally:
+        del env._eval_predicate  # the class's method again
+
+
 class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
     """A slot that keeps one env per task in use and swaps through the group's pool on task change."""
 
@@ -326,9 +357,10 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
 
     def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
         stepper = make_stepper(self._env, self._family.config["fast_step"])  # env.step or its lean twin
-        obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
-        raw = self._observation(obs, action)
-        success = bool(self._env._check_success())  # the benchmark's own predicate, nothing else
+        with _predicates_memoized(self._env):  # the reward, the milestones and success share them
+            obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
+            raw = self._observation(obs, action)
+            success = bool(self._env._check_success())  # the benchmark's own predicate, nothing else
         return raw, float(reward), success, self._state.info()
 
     def _release(self) -> None:
