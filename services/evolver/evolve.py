@@ -51,7 +51,9 @@ class EvolveConfig:
     gate: GateParams = GateParams()
     llm: LLMConfig | None = None
     max_edits: int = 3
-    #: Internal versions stacked per cluster and round while no candidate succeeds on the medoid.
+    #: Internal versions stacked per cluster and round; each validated version that solves more of
+    #: the cluster than any before it earns one more, up to twice this (a cluster being solved seed
+    #: by seed is worth finishing; one that stalls is not).
     max_depth: int = 3
 
 
@@ -227,8 +229,9 @@ class Evolution:
         stack: list[Candidate] = []
         validated: list[Candidate] = []
         regression = (0, len(seeds))
-        tried = 0
-        for _ in range(self.cfg.max_depth):
+        tried, depth, budget, best = 0, 0, self.cfg.max_depth, 0
+        while depth < budget:
+            depth += 1
             cands = self._candidates(spec, base, medoid, members, succ_traces)
             tried += len(cands)
             v = self.validate(task, round_, cluster, base, cands, target, progress)
@@ -239,6 +242,7 @@ class Evolution:
             base, ref = pick.apply(base), v.ref
             reg = self._rollouts(self._keys(task, seeds, v.ref, "regress"), f"r{round_} {cluster} regress", round_)
             regression = count(reg)
+            best_before, best = best, max(best, regression[0])
             version = {"version": f"v{len(versions)}", "harness": v.ref, "successes": regression[0],
                        "episodes": regression[1], "medoid_milestones": v.progress, "seed": target,
                        "validated": v.found is not None}
@@ -248,14 +252,17 @@ class Evolution:
                 failing = {r.seed: r for r in reg if not r.success}
                 if not failing:
                     break
+                if regression[0] > best_before:
+                    budget = min(budget + 1, 2 * self.cfg.max_depth)
                 # Validated on the seed under repair, not yet on the whole cluster: the next version
                 # repairs the closest member this one still fails.
                 target = next(s for s in order if s in failing)
                 nxt = failing[target]
                 progress = len(nxt.milestones_reached)
+                others = [r for s_, r in failing.items() if s_ != target]
             else:
                 # The next version repairs what stops the stepping stone: diagnose its own rollout.
-                nxt = v.rollout
+                nxt, others = v.rollout, []
                 progress = v.progress
             tr = self.store.trace(nxt)
             eod = t_eod(tr, index, self.cfg.eod)
@@ -264,7 +271,10 @@ class Evolution:
             version["diagnosis"] = spec.to_dict()
             if not spec.repairable:
                 break
-            medoid, members = ReplayCase(tr, eod.step, eod.referenced), []
+            medoid = ReplayCase(tr, eod.step, eod.referenced)
+            # The cluster seeds this version still fails: what the next patch's critic should also catch.
+            members = [ReplayCase(t, e.step, e.referenced)
+                       for t, e in ((t, t_eod(t, index, self.cfg.eod)) for t in map(self.store.trace, others))]
         self.store.record("cluster_versions", {"suite": self.cfg.suite, "task": task, "round": round_,
                                                "cluster": cluster, "versions": versions, "tried": tried},
                           ident=cluster)

@@ -112,16 +112,19 @@ async def test_invalid_attempts_are_rerun_on_the_same_key(tmp_path: Path) -> Non
     stack.start()
     try:
         store = RolloutStore(tmp_path / "store")
-        store.assign_splits("libero_goal", TASK, dev=4, heldout=0)
+        store.assign_splits("libero_goal", TASK, dev=8, heldout=0)
         keys = [EpisodeKey("libero_goal", TASK, s, "", "profile") for s in store.seeds("libero_goal", TASK, DEV)]
-        runner = Runner(store, RunConfig(gateway=stack.gateway_address, model="scripted-pick-place", max_steps=120,
+        runner = Runner(store, RunConfig(gateway=stack.gateway_address, model="scripted-pick-place", max_steps=300,
                                          concurrency=4), {"suite": "libero_goal"})
         job = asyncio.create_task(runner.run(keys))
-        await asyncio.sleep(8.0)
+        # Kill one worker once the first rollout is filed: the next ones are in flight on both workers
+        # (a fixed sleep raced the episodes, which a fast machine finishes first).
+        while not store.query() and not job.done():
+            await asyncio.sleep(0.1)
         os.killpg(stack.services["env-0"].proc.pid, signal.SIGKILL)
         rollouts = await asyncio.wait_for(job, timeout=240)
         assert [r.key for r in rollouts] == [str(k) for k in keys]
-        assert len(store.query()) == 4
+        assert len(store.query()) == 8
         invalid = store.invalid_attempts()
         assert invalid, "killing a worker mid-episode must invalidate the attempts it held"
         assert {k for k, _ in invalid} <= {str(k) for k in keys}
