@@ -17,7 +17,7 @@ import numpy as np
 
 from services.evolver.cluster import Cluster, ClusterParams, cluster_failures
 from services.evolver.consolidate import consolidate
-from services.evolver.diagnose import Case, RepairSpec, repair_spec
+from services.evolver.diagnose import REENTERED, Case, RepairSpec, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.eod import EOD, EODParams, t_eod
 from services.evolver.gate import GateParams, count, judge, regression_gate
@@ -331,8 +331,12 @@ class Evolution:
         Returns the first candidate whose rollout succeeds (the cluster's validated patch) with its
         harness reference; failing that, the candidate that got the medoid furthest past
         ``progress`` milestones (an internal version to build on: the paper's early, stagnant v1).
-        Every candidate that fails the medoid is put in the rejected buffer."""
+        Between stepping stones that got equally far, one whose recoveries all handed back cleanly
+        comes first (what stops it is a new failure a further patch can stack on, not its own
+        recovery failing), then the one that left the policy more of the episode. Every candidate
+        that fails the medoid is put in the rejected buffer."""
         best = Validation(None, None, "", progress, None)
+        best_key: tuple[int, bool, int] = (progress, False, 0)
         if self.registry is None:
             self.store.record("validation", {"cluster": cluster, "skipped": "no harness registry: candidates "
                                              "cannot run closed-loop", "candidates": [c.to_dict() for c in cands]})
@@ -349,8 +353,9 @@ class Evolution:
             if medoid.success:
                 return Validation(cand, None, ref, reached, medoid)
             self.store.reject(draft.fingerprint(), cluster, "fresh closed-loop rollout of the medoid failed")
-            if reached > best.progress:
-                best = Validation(None, cand, ref, reached, medoid)
+            key = step_rank(reached, self.store.trace(medoid).interventions, medoid.recovery_steps)
+            if reached > progress and key > best_key:
+                best, best_key = Validation(None, cand, ref, reached, medoid), key
         return best
 
     def gate(self, task: str, round_: int, cur: TaskState, repairs: Sequence["ClusterRepair"],
@@ -434,6 +439,12 @@ class Evolution:
         self.store.record("final", {"suite": self.cfg.suite, "task": task, "harness": ref or "bare",
                                     "bare": list(count(bare)), "final": list(count(final)), "seeds": seeds},
                           ident=f"{self.cfg.suite}/{task}")
+
+
+def step_rank(reached: int, interventions: Sequence[dict[str, Any]], recovery_steps: int) -> tuple[int, bool, int]:
+    """How good a stepping stone is (larger is better): milestones reached, then whether every
+    recovery handed back cleanly, then how few actions recoveries took."""
+    return reached, all(str(iv.get("outcome", "")) in REENTERED for iv in interventions), -recovery_steps
 
 
 def env_config(suite: str, run: RunConfig) -> dict[str, Any]:

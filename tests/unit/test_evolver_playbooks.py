@@ -12,7 +12,7 @@ from services.critic.runtime.library.playbooks import PLAYBOOKS, check_playbooks
 from services.evolver.diagnose import Case, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, render
 from services.evolver.eod import t_eod
-from services.evolver.evolve import ClusterRepair, EvolveConfig, Evolution
+from services.evolver.evolve import ClusterRepair, EvolveConfig, Evolution, step_rank
 from services.evolver.gate import GateParams
 from services.evolver.profile import SuccessIndex
 from services.evolver.repair import Candidate, ReplayCase, SearchParams, plan_of, search
@@ -112,3 +112,13 @@ def test_reference_index_takes_dev_successes_of_any_harness_but_never_heldout(tm
     evo = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), None)
     index = evo._reference_index("9", profile)
     assert index.rollouts == 2 and index.states
+
+
+def test_stepping_stones_rank_by_progress_then_clean_hand_backs() -> None:
+    """Equally far, a stone whose recoveries handed back beats one whose recovery failed (a further
+    patch can stack on it), and fewer recovery actions break the last tie; progress comes first."""
+    failed = [{"outcome": "recovery_failed: fine_alignment: blocked short of the target"}]
+    clean = [{"outcome": "reentered"}]
+    assert step_rank(3, clean, 80) > step_rank(3, failed, 10)
+    assert step_rank(3, clean, 10) > step_rank(3, clean, 80)
+    assert step_rank(4, failed, 200) > step_rank(3, clean, 0)
