@@ -71,8 +71,9 @@ class HarnessDraft:
         return replace(self, critics={**self.critics, **critics}, plans={**self.plans, **plans})
 
     def fingerprint(self) -> str:
-        """Identity of the draft's behaviour (not its name), for the buffer of rejected candidates."""
-        body = {"critics": {k: [v.template, dict(sorted(v.params.items())), v.evidence, v.mode, v.priority, list(v.missing)]
+        """Identity of the draft's behaviour on its tasks (not its name), for the buffer of rejected
+        candidates: a patch refused on one task may still be the answer on another."""
+        body = {"tasks": list(self.tasks), "critics": {k: [v.template, dict(sorted(v.params.items())), v.evidence, v.mode, v.priority, list(v.missing)]
                             for k, v in sorted(self.critics.items())},
                 "plans": {k: [v.recovery, dict(sorted(v.args.items())), v.max_uses, v.max_steps, v.clear_when]
                           for k, v in sorted(self.plans.items())},

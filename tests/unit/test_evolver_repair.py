@@ -70,6 +70,9 @@ def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     rejected = {c.apply(PARENT).fingerprint() for c in cands}
     again = search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3), rejected.__contains__)
     assert not {c.apply(PARENT).fingerprint() for c in again} & rejected
+    # ... for this task only: the same patch on another task's harness is a different candidate.
+    other = HarnessDraft("evolved-9", ("9",))
+    assert search(spec, other, medoid, members, succ, SearchParams(max_candidates=3), rejected.__contains__)[0] == best
 
 
 def test_patch_checks_refuse_unknown_templates_out_of_range_and_oversized_patches() -> None:
