@@ -51,25 +51,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
+from zetta import bench_sweep  # noqa: E402
 from zetta.bench_report import aligned  # noqa: E402
-from zetta.bench_sweep import quiet_fds  # noqa: E402
+from zetta.bench_sweep import Episode, balanced, quiet_fds  # noqa: E402
 
 SUITE = "libero_goal"
 TASK = "put_the_cream_cheese_in_the_bowl"
 ENV_WORKERS = 2
 SLOTS_PER_WORKER = 8
-
-
-@dataclass
-class Episode:
-    """One finished episode, as the client saw it."""
-
-    index: int
-    success: bool
-    steps: int
-    latency_s: float
-    #: Naive loop only: seconds spent building the environment.
-    build_s: float = 0.0
 
 
 @dataclass
@@ -124,38 +113,17 @@ class Point:
 
 
 def env_config(max_steps: int) -> dict[str, object]:
-    return {"suite": SUITE, "task": TASK, "max_steps": max_steps}
+    return bench_sweep.env_config(TASK, max_steps)
 
 
 def naive_episode(index: int, max_steps: int) -> Episode:
-    """Build a LIBERO env from scratch, run one episode with the in-process policy, drop the env."""
-    from services.env_worker.families.base import ResetSpec, get_family
+    """Build a LIBERO env from scratch, run one episode with the in-process policy, drop the env
+    (the loop of `zetta bench rollout`'s naive rows, on this page's episode key: seed i, init i % 50)."""
     from services.policy_worker.models.scripted import ScriptedPickPlacePolicy
 
-    start = time.perf_counter()
-    family = get_family("libero")(env_config(max_steps))  # fresh sharing group: nothing cached
-    slot = family.init()  # compiles the scene and builds the env
-    build_s = time.perf_counter() - start
-    policy = ScriptedPickPlacePolicy()
-    try:
-        obs, instruction = slot.reset(ResetSpec(task=TASK, seed=index, init_state_index=index % 50))
-        success = False
-        while slot.episode_step < max_steps:
-            chunk = policy.infer({k: v[None] for k, v in obs.items()}, [instruction])[0]  # batch of 1
-            outcome = None
-            for action in chunk:
-                outcome = slot.step(action)
-                if outcome.terminated or outcome.truncated or slot.episode_step >= max_steps:
-                    break
-            assert outcome is not None
-            obs, success = outcome.observation, outcome.success
-            if outcome.terminated or outcome.truncated:
-                break
-        steps = slot.episode_step
-    finally:
-        slot.close()
-        family.close()
-    return Episode(index, success, steps, time.perf_counter() - start, build_s)
+    episode, _ = bench_sweep.naive_episode(ScriptedPickPlacePolicy(), index, TASK, max_steps, fast_step=True,
+                                           key=(index, index % 50))
+    return episode
 
 
 def naive_warmup(max_steps: int, log: Callable[[str], None]) -> None:
@@ -192,20 +160,6 @@ def run_naive_half(point: Point, indices: Sequence[int], max_steps: int, repeats
 
 # ---------------------------------------------------------------------------------------------
 # our stack
-
-
-def balanced(infos: Sequence[object], n: int) -> list[str]:
-    """``n`` session ids spread round-robin over the workers that hold them."""
-    by_worker: dict[str, list[str]] = {}
-    for info in infos:
-        by_worker.setdefault(info.worker_id, []).append(info.session_id)  # type: ignore[attr-defined]
-    queues = [list(v) for _, v in sorted(by_worker.items())]
-    out: list[str] = []
-    while len(out) < n and any(queues):
-        for q in queues:
-            if q and len(out) < n:
-                out.append(q.pop(0))
-    return out
 
 
 async def run_lanes(sessions: object, ids: Sequence[str], episodes: int, mode: str, max_steps: int) -> Run:

@@ -14,6 +14,7 @@ import queue
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from zetta import bench_report
@@ -54,13 +55,18 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     from services.policy_worker.models.base import load_model
 
     rows: dict[str, bs.Row] = {}
-    bs.run_naive(rows, load_model(SCRIPTED), [0], bs.DEFAULT_TASK, 8, False, logs.append)
+    recorded: dict[tuple[int, int], np.ndarray] = {}
+    bs.run_naive(rows, load_model(SCRIPTED), [0], bs.DEFAULT_TASK, 8, False, logs.append, recorded)
     assert rows["naive"].steps == 8 and rows["naive"].wall_s > 0
+    assert list(recorded) == [bs.episode_key(0)] and recorded[bs.episode_key(0)].shape == (8, 7)
+    assert 0 < rows["naive"].episodes[0].build_s < rows["naive"].episodes[0].latency_s
 
     out: queue.Queue[dict] = queue.Queue()
-    bs.limit_child("obs", bs.DEFAULT_TASK, 8, 0.2, 1, threading.Barrier(1), out)
+    bs.limit_child("obs", bs.DEFAULT_TASK, 8, 0.2, 1, threading.Barrier(1), out, sorted(recorded.items()))
     result = out.get_nowait()
     assert result["episodes"] and all(steps == 8 for steps, _ in result["episodes"])
+    bs.limit_child("fast", bs.DEFAULT_TASK, 8, 0.1, 1, threading.Barrier(1), out)  # no recording: random actions
+    assert all(steps == 8 for steps, _ in out.get_nowait()["episodes"])
     limit = bs.Row("limit-obs", 1, [bs.Episode(i, False, s, t) for i, (s, t) in enumerate(result["episodes"])],
                    result["end"] - result["start"])
 
@@ -102,6 +108,21 @@ def test_targets_judge_the_issue_thresholds() -> None:
     res.rows[-1].usage = bs.Usage(100.0, 90.0, None, 1.0, cpu_s=70.0)  # and the stack 7: 71%, not met
     (_, measured, ok) = bench_report.targets(res)[1]
     assert ok is False and "CPU cost per step 71%" in measured
+
+
+def test_latency_growth_floor_from_littles_law() -> None:
+    """At concurrency 8 the stack kept 60% of the cores busy at 3 CPU ms a step; at 32 a step costs
+    the same: growth can be no less than 4 x 0.6 = 2.4x, and the target names the floor."""
+    def row(c: int, latency: float, own_pct: float) -> bs.Row:
+        usage = bs.Usage(100.0, own_pct, None, 1.0, cpu_s=0.3)  # 100 steps x 3 ms
+        return bs.Row("stack", c, [bs.Episode(i, False, 100 // 4, latency) for i in range(4)], 10.0, usage)
+
+    res = bs.Results({}, "m", "now", 0.0, rows=[row(8, 4.0, 60.0), row(32, 10.0, 100.0)])
+    assert abs(bench_report.latency_growth_floor(res) - 2.4) < 1e-9
+    (_, measured, ok) = bench_report.targets(res)[2]
+    assert ok is False and measured.startswith("2.50x") and "less than 2.40x" in measured
+    res.rows[0].usage.own_cpu_pct = 40.0  # a machine with room to spare at 8: the floor is 1.6x
+    assert abs(bench_report.latency_growth_floor(res) - 1.6) < 1e-9
 
 
 @pytest.mark.slow

@@ -74,6 +74,8 @@ class Episode:
     success: bool
     steps: int
     latency_s: float
+    #: Naive loops only: seconds of the episode spent building its environment.
+    build_s: float = 0.0
 
 
 @dataclass
@@ -107,6 +109,8 @@ class Row:
     #: 1-minute load average at the end of the row.
     load: float = 0.0
     note: str = ""
+    #: Mean time (ms) an inference request waited in the policy worker's queue over the row.
+    queue_wait_ms: float | None = None
 
     @property
     def successes(self) -> int:
@@ -308,15 +312,24 @@ def quiet_fds() -> Iterator[None]:
             os.close(fd)
 
 
-def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step: bool) -> Episode:
-    """A fresh LIBERO env (its scene compiled again), one episode with the in-process policy, batch 1."""
+def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step: bool,
+                  key: tuple[int, int] | None = None) -> tuple[Episode, np.ndarray]:
+    """A fresh LIBERO env (its scene compiled again), one episode with the in-process policy, batch 1.
+
+    The episode is ``key`` (seed, init state index), by default :func:`episode_key` of ``index``;
+    the step budget is the env's own (``max_steps`` in its config truncates the episode). Returns
+    the episode (with the seconds the env build took) and the actions it executed, which the
+    ``limit`` rows replay. bench/bench_rollout.py runs its naive baseline through this too.
+    """
     from services.env_worker.families.base import ResetSpec, get_family
 
     start = time.perf_counter()
     family = get_family("libero")(env_config(task, max_steps, fast_step))  # a new group: nothing cached
     slot = family.init()
+    build_s = time.perf_counter() - start
+    executed: list[np.ndarray] = []
     try:
-        seed, init = episode_key(index)
+        seed, init = key if key is not None else episode_key(index)
         obs, instruction = slot.reset(ResetSpec(task=task, seed=seed, init_state_index=init))
         success = False
         while slot.episode_step < max_steps:
@@ -324,6 +337,7 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
             outcome = None
             for action in chunk:
                 outcome = slot.step(action, render=False)
+                executed.append(np.asarray(action))
                 if outcome.terminated or outcome.truncated:
                     break
             assert outcome is not None
@@ -334,16 +348,36 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
     finally:
         slot.close()
         family.close()
-    return Episode(index, success, steps, time.perf_counter() - start)
+    actions = np.stack(executed).astype(np.float32) if executed else np.zeros((0, 7), np.float32)
+    return Episode(index, success, steps, time.perf_counter() - start, build_s), actions
 
 
-def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any) -> None:
-    """One core's worth of stepping with no infrastructure: reset, ``max_steps`` steps, repeat.
+#: A recorded episode the limit rows replay: its key (seed, init state index) and executed actions.
+Replay = tuple[tuple[int, int], np.ndarray]
+
+
+def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
+    """Episodes of fixed random actions (gripper closing and opening every 20 steps) on fresh keys:
+    what the limit rows replay when no naive episode recorded the policy's own actions."""
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-0.5, 0.5, size=(max_steps, 7)).astype(np.float32)
+    actions[:, 6] = np.where(np.arange(max_steps) % 40 < 20, -1.0, 1.0)
+    return [(episode_key(seed * 1000 + k), actions) for k in range(count)]
+
+
+def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any,
+                replays: Sequence[Replay] = ()) -> None:
+    """One core's worth of stepping with no infrastructure: reset, an episode's actions, repeat.
 
     ``kind`` "fast": ``FastStepper.step`` on the slot's env (the fastest env path); "obs": the
-    slot's own step (fast path plus canonical observation, milestones and signals).
+    slot's own step (fast path plus canonical observation, milestones and signals). ``replays``
+    are the episodes to step, in turn from the ``seed``-th (the policy's recorded actions in the
+    sweep: the same contact-rich physics the stacks step); none: :func:`random_replays`. Every
+    reset replays the settle steps (no settled snapshot is reused), as the first reset of a key
+    does in the stacks, whose episodes never repeat a key on one env.
     """
     with quiet_fds():
+        from services.env_worker.families import settled
         from services.env_worker.families.base import ResetSpec, get_family, select_gl_backend
         from services.env_worker.fast_step import make_stepper, warm_up
 
@@ -351,20 +385,19 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
         warm_up()
         family = get_family("libero")(env_config(task, max_steps))
         slot = family.init()
-        rng = np.random.default_rng(seed)
-        actions = rng.uniform(-0.5, 0.5, size=(max_steps, 7)).astype(np.float32)
-        actions[:, 6] = np.where(np.arange(max_steps) % 40 < 20, -1.0, 1.0)
+        replays = list(replays) or random_replays(seed, max_steps)
         slot.reset(ResetSpec(task=task, seed=seed))
         stepper = make_stepper(slot._env, True)
-        for a in actions[: min(5, max_steps)]:
+        for a in replays[0][1][:5]:
             stepper.step(a.astype(np.float64))
     barrier.wait()
     cpu0, start = time.process_time(), time.time()
     episodes = []
-    k = 0
+    k = seed
     while time.time() - start < seconds:
         t = time.perf_counter()
-        key_seed, init = episode_key(seed * 1000 + k)
+        (key_seed, init), actions = replays[k % len(replays)]
+        settled.forget(slot._env)
         slot.reset(ResetSpec(task=task, seed=key_seed, init_state_index=init))
         if kind == "fast":
             for a in actions:
@@ -379,14 +412,15 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
     family.close()
 
 
-def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, log: Log) -> Row:
+def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, log: Log,
+              replays: Sequence[Replay] = ()) -> Row:
     """``procs`` processes stepping at once; aggregate over the span from the first start to the last end."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
     barrier = ctx.Barrier(procs + 1)
     out = ctx.Queue()
-    children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, barrier, out))
+    children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, barrier, out, replays))
                 for i in range(procs)]
     for c in children:
         c.start()
@@ -409,8 +443,9 @@ def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, 
 
 
 def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: str, max_steps: int,
-              fast_step: bool, log: Log) -> None:
-    """Run naive episodes ``indices``, adding them (and their wall time) to the naive row."""
+              fast_step: bool, log: Log, recorded: dict[tuple[int, int], np.ndarray] | None = None) -> None:
+    """Run naive episodes ``indices``, adding them (and their wall time) to the naive row, and the
+    actions each executed to ``recorded`` by episode key."""
     if not indices:
         return
     mode = "naive-fast" if fast_step else "naive"
@@ -418,8 +453,13 @@ def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: s
     meter = ResourceMeter(lambda: {"naive": os.getpid()})
     meter.start()
     t0 = time.perf_counter()
+    done = []
     with quiet_fds():
-        done = [naive_episode(policy, i, task, max_steps, fast_step) for i in indices]
+        for i in indices:
+            episode, actions = naive_episode(policy, i, task, max_steps, fast_step)
+            done.append(episode)
+            if recorded is not None and len(actions):
+                recorded[episode_key(i)] = actions
     wall = time.perf_counter() - t0
     usage = meter.stop()
     row.episodes += done
@@ -480,23 +520,36 @@ def model_ops(policy: Any, obs: dict[str, np.ndarray], instruction: str) -> int:
 # the stack
 
 
-def batch_totals(url: str, model: str) -> tuple[float, float]:
-    """(sum, count) of the policy worker's batch-size histogram for ``model``."""
+#: Policy worker histograms a stack point reads the mean of over its span.
+POLICY_HISTOGRAMS = ("zetta_policy_batch_size", "zetta_policy_queue_wait_seconds")
+
+
+def histogram_totals(url: str, model: str) -> dict[str, tuple[float, float]]:
+    """(sum, count) of each of :data:`POLICY_HISTOGRAMS` of the policy worker for ``model``."""
     from prometheus_client.parser import text_string_to_metric_families
 
     from zetta.hops import scrape
 
-    total = count = 0.0
+    out = {name: (0.0, 0.0) for name in POLICY_HISTOGRAMS}
     for family in text_string_to_metric_families(scrape(url)):
-        if family.name != "zetta_policy_batch_size":
+        if family.name not in out:
             continue
+        total, count = out[family.name]
         for s in family.samples:
             if s.labels.get("model") == model:
                 if s.name.endswith("_sum"):
                     total += s.value
                 elif s.name.endswith("_count"):
                     count += s.value
-    return total, count
+        out[family.name] = (total, count)
+    return out
+
+
+def histogram_mean(before: dict[str, tuple[float, float]], after: dict[str, tuple[float, float]],
+                   name: str) -> float | None:
+    """Mean of one histogram's observations between two :func:`histogram_totals`; None without any."""
+    count = after[name][1] - before[name][1]
+    return (after[name][0] - before[name][0]) / count if count else None
 
 
 def balanced(infos: Sequence[Any], n: int) -> list[str]:
@@ -649,7 +702,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                 meter = ResourceMeter(lambda: stack_pids(stack))
                 profiler = Profiler(stack, Path(spec.profile_dir)) if spec.profile_dir and c == spec.profile_concurrency \
                     else None
-                before = batch_totals(policy_url, spec.model)
+                before = histogram_totals(policy_url, spec.model)
                 if profiler is not None:
                     profiler.start()
                 meter.start()
@@ -663,15 +716,15 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                     if profiler is not None:
                         log(f"  profile of {spec.mode} c={c}: {profiler.stop()}")
                 usage = meter.stop()
-                after = batch_totals(policy_url, spec.model)
+                after = histogram_totals(policy_url, spec.model)
                 first += n
-                batches = after[1] - before[1]
-                row = Row(spec.mode, c, done, wall, usage, (after[0] - before[0]) / batches if batches else None,
-                          load_average())
+                wait = histogram_mean(before, after, "zetta_policy_queue_wait_seconds")
+                row = Row(spec.mode, c, done, wall, usage, histogram_mean(before, after, "zetta_policy_batch_size"),
+                          load_average(), queue_wait_ms=None if wait is None else 1000.0 * wait)
                 log(f"  {spec.mode} c={c}: {n} episodes in {wall:.1f} s = {row.episodes_per_min:.1f}/min, "
                     f"{row.steps_per_s:.0f} steps/s, p50 {row.latency(50):.2f} s, p99 {row.latency(99):.2f} s, "
-                    f"batch {row.batch_mean or 0:.1f}, CPU own {usage.own_cpu_pct:.0f}% machine "
-                    f"{usage.machine_cpu_pct:.0f}%, load {row.load:.2f}")
+                    f"batch {row.batch_mean or 0:.1f}, queue wait {row.queue_wait_ms or 0:.1f} ms, CPU own "
+                    f"{usage.own_cpu_pct:.0f}% machine {usage.machine_cpu_pct:.0f}%, load {row.load:.2f}")
                 rows.append(row)
             if gateway_probe is not None and not failures:
                 gateway_probe.update(await _gateway_hop(sessions))
@@ -716,6 +769,8 @@ class Results:
     #: Points that failed (the rows before them stand), e.g. a stack without sharing out of memory.
     failures: list[str] = field(default_factory=list)
     elapsed_s: float = 0.0
+    #: What the limit rows stepped (the policy's recorded actions, or random ones).
+    limit_actions: str = ""
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
@@ -729,9 +784,9 @@ class Results:
         for r in data["rows"]:
             usage = Usage(**r["usage"]) if r.get("usage") else None
             rows.append(Row(r["mode"], r["concurrency"], [Episode(**e) for e in r["episodes"]], r["wall_s"], usage,
-                            r.get("batch_mean"), r.get("load", 0.0), r.get("note", "")))
+                            r.get("batch_mean"), r.get("load", 0.0), r.get("note", ""), r.get("queue_wait_ms")))
         fields = {k: data[k] for k in ("args", "machine", "started", "load_start", "load_end", "policy_ops", "chunk",
-                                       "gateway", "failures", "elapsed_s") if k in data}
+                                       "gateway", "failures", "elapsed_s", "limit_actions") if k in data}
         return cls(**fields, rows=rows, inference_ms={int(k): v for k, v in data.get("inference_ms", {}).items()})
 
 
@@ -756,10 +811,16 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
     rows: dict[str, Row] = {}
     half = (args.naive_episodes + 1) // 2
     fast_half = (args.naive_fast_episodes + 1) // 2
-    run_naive(rows, policy, range(half), args.task, args.max_steps, False, log)
-    run_naive(rows, policy, range(fast_half), args.task, args.max_steps, True, log)
+    recorded: dict[tuple[int, int], np.ndarray] = {}
+    run_naive(rows, policy, range(half), args.task, args.max_steps, False, log, recorded)
+    run_naive(rows, policy, range(fast_half), args.task, args.max_steps, True, log, recorded)
+    replays = sorted(recorded.items())
+    res.limit_actions = (f"the policy's actions of {len(replays)} naive episodes, replayed" if replays
+                         else "fixed random actions (no naive episode ran to record the policy's)")
+    log(f"limit rows step {res.limit_actions}")
     cores = args.limit_processes or os.cpu_count() or 1
-    limits = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log) for kind in ("fast", "obs")]
+    limits = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays)
+              for kind in ("fast", "obs")]
     slots = -(-max(args.concurrency) // args.env_workers)
     profile_c = args.profile_concurrency or (16 if 16 in args.concurrency else max(args.concurrency))
     stack = run_stack(StackSpec("stack", args.env_workers, slots, args.model, profile_dir=args.profile,
@@ -771,7 +832,8 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
         off = run_stack(StackSpec("stack-off", args.env_workers, off_slots, args.model,
                                   {"ZETTA_MAX_BATCH": "1", "ZETTA_RESOURCE_SHARING": "false"}),
                         args.baseline_concurrency, args.episodes, args.task, args.max_steps, log, res.failures)
-    limits_after = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log) for kind in ("fast", "obs")]
+    limits_after = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays)
+                    for kind in ("fast", "obs")]
     run_naive(rows, policy, range(fast_half, args.naive_fast_episodes), args.task, args.max_steps, True, log)
     run_naive(rows, policy, range(half, args.naive_episodes), args.task, args.max_steps, False, log)
     for before, after in zip(limits, limits_after):  # one row each, over both measurements

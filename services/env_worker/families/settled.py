@@ -129,6 +129,12 @@ def capture(env: Any, start: np.ndarray, observation: Mapping[str, Any]) -> Snap
     )
 
 
+def forget(env: Any) -> None:
+    """Drop every snapshot of ``env``: its next reset of any key replays the settle steps (what a
+    benchmark that repeats keys does to measure first resets)."""
+    vars(env).pop(_ATTR, None)
+
+
 def lookup(env: Any, key: Hashable, start: np.ndarray) -> Snapshot | None:
     """The snapshot of ``key`` on ``env`` if it applies to the state ``env`` stands in now."""
     cache: OrderedDict[Hashable, Snapshot] | None = getattr(env, _ATTR, None)
