@@ -2,8 +2,8 @@
 
 Every inference request a worker's slots make in the same event-loop turn travels in one Infer
 call; the policy worker then batches those with other workers' requests. Observations are cut
-down to the tensors the model reads (learned once from ListModels), so images a state-based
-policy ignores never cross the wire.
+down to the tensors the model reads (learned once from ListModels) before they are encoded, so
+images a state-based policy ignores are neither serialized nor sent.
 """
 
 from __future__ import annotations
@@ -11,16 +11,18 @@ from __future__ import annotations
 import asyncio
 import itertools
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import grpc
+import numpy as np
 
 from services.common import grpc_errors as ge
 from services.common.metrics import HOP_LATENCY
 from services.common.server import CHANNEL_OPTIONS
 from services.env_worker import metrics
-from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc, types_pb2
+from zetta.codec import encode
+from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
 @dataclass
@@ -56,9 +58,10 @@ class PolicyClient:
         return self._inputs.get(model)
 
     async def infer(
-        self, token: str, model: str, observation: types_pb2.Observation, instruction: str, timeout_ms: int
+        self, token: str, model: str, observation: Mapping[str, np.ndarray], instruction: str, timeout_ms: int
     ) -> policy_worker_pb2.InferOutput:
-        """One item; it leaves with every other item submitted in the same loop turn."""
+        """One item; it leaves with every other item submitted in the same loop turn. Only the
+        tensors the model reads are encoded."""
         if not self._stubs:
             raise ge.failed_precondition(
                 "this env worker has no policy worker configured (set ZETTA_POLICY_ADDRESSES)"
@@ -70,9 +73,9 @@ class PolicyClient:
         item = policy_worker_pb2.InferItem(
             token=token, model=model, instruction=instruction, timeout_ms=timeout_ms or self._default_timeout_ms
         )
-        for name, tensor in observation.tensors.items():
+        for name, array in observation.items():
             if wanted is None or name in wanted:
-                item.observation.tensors[name].CopyFrom(tensor)
+                encode(array, item.observation.tensors[name])
         fut: asyncio.Future[policy_worker_pb2.InferOutput] = asyncio.get_running_loop().create_future()
         self._pending.append(_Pending(item, fut))
         if not self._flush_scheduled:

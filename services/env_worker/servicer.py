@@ -284,9 +284,9 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         """The action chunk for the slot's last observation, and the model that answered."""
         episode = slot.require_episode()
         assert slot.last_obs is not None
-        obs = encode_observation(slot.last_obs)
         token = f"{self.worker_id}/{slot.session_id}/{episode.episode_id}/{slot.env.episode_step}"
-        out = await self.policy.infer(token, policy.model, obs, policy.instruction or episode.instruction, policy.timeout_ms)
+        out = await self.policy.infer(token, policy.model, slot.last_obs, policy.instruction or episode.instruction,
+                                      policy.timeout_ms)
         actions = decode(out.actions)
         return action_spec_check(slot.family.action_spec(), actions, slot.session_id), out.model
 
