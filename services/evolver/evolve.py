@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -25,7 +26,7 @@ from services.evolver.llm import LLMConfig, LLMError, propose
 from services.evolver.profile import SuccessIndex, build_profile
 from services.evolver.registry_client import RegistryClient
 from services.evolver.repair import NOT_EVIDENCE, Candidate, ReplayCase, SearchParams, library, search
-from services.evolver.replay import first_fire
+from services.evolver.replay import first_fire, resume_frame
 from services.evolver.rollout import Runner, RunConfig
 from services.evolver.trace import Trace
 from services.evolver.store import DEV, HELDOUT, EpisodeKey, Rollout, RolloutStore
@@ -216,9 +217,8 @@ class Evolution:
         seeds, cluster = cl.seeds, spec.cluster
         if not spec.repairable:
             return ClusterRepair(record, [], cur.draft, seeds, (0, len(seeds)), cur.ref)
-        medoid = ReplayCase(traces[cl.medoid], eods[cl.medoid].step, eods[cl.medoid].referenced)
-        members = [ReplayCase(tr, e.step, e.referenced)
-                   for j, (tr, e) in enumerate(zip(traces, eods)) if j != cl.medoid]
+        medoid = ReplayCase.of(traces[cl.medoid], eods[cl.medoid])
+        members = [ReplayCase.of(tr, e) for j, (tr, e) in enumerate(zip(traces, eods)) if j != cl.medoid]
         # Cluster seeds by closeness to the medoid: the order in which failing members are taken up.
         order = [seeds[j] for j in np.argsort(np.linalg.norm(cl.features - cl.features[cl.medoid], axis=1), kind="stable")]
         target = cl.medoid_failure.rollout.seed
@@ -271,10 +271,9 @@ class Evolution:
             version["diagnosis"] = spec.to_dict()
             if not spec.repairable:
                 break
-            medoid = ReplayCase(tr, eod.step, eod.referenced)
+            medoid = ReplayCase.of(tr, eod)
             # The cluster seeds this version still fails: what the next patch's critic should also catch.
-            members = [ReplayCase(t, e.step, e.referenced)
-                       for t, e in ((t, t_eod(t, index, self.cfg.eod)) for t in map(self.store.trace, others))]
+            members = [ReplayCase.of(t, t_eod(t, index, self.cfg.eod)) for t in map(self.store.trace, others)]
         self.store.record("cluster_versions", {"suite": self.cfg.suite, "task": task, "round": round_,
                                                "cluster": cluster, "versions": versions, "tried": tried},
                           ident=cluster)
@@ -305,18 +304,26 @@ class Evolution:
         return extra + cands
 
     def _case(self, trace: Trace, eod: EOD, m_star: str, draft: HarnessDraft) -> Case:
-        """A diagnosis case with the current harness's and the library's replay firings."""
+        """A diagnosis case with the current harness's and the library's replay firings, from the last
+        hand-back before t_EOD on. A critic whose playbook had used all its uses by then counts as
+        silent: it could no longer act on what it saw."""
         preds, _ = library()
-        cur_fired = {}
+        start = resume_frame(trace, eod.step)
+        uses = Counter(str(iv.get("evidence", "")) for iv in trace.interventions
+                       if 0 <= int(iv.get("start_step", -1)) <= eod.step)
+        cur_fired: dict[str, int | None] = {}
         detectable = {}
         for name, spec in preds.items():
             if name in NOT_EVIDENCE:
                 continue
             defaults = {k: p.default for k, p in spec.params.items()}
-            detectable[name] = first_fire(trace, spec.fn, defaults)
+            detectable[name] = first_fire(trace, spec.fn, defaults, start=start)
         for cname, c in draft.critics.items():
-            if c.template in preds:
-                cur_fired[cname] = first_fire(trace, preds[c.template].fn, c.params)
+            plan = draft.plans.get(c.evidence)
+            if plan is not None and uses[c.evidence] >= plan.max_uses:
+                cur_fired[cname] = None
+            elif c.template in preds:
+                cur_fired[cname] = first_fire(trace, preds[c.template].fn, c.params, start=start)
         return Case(trace=trace, eod=eod, success=False, m_star=m_star, fired=cur_fired, detectable=detectable,
                     window=self.cfg.search.window)
 

@@ -22,7 +22,7 @@ from typing import Any
 
 from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
-from services.evolver.replay import first_fire
+from services.evolver.replay import first_fire, resume_frame
 from services.evolver.trace import Trace
 
 #: Which recoveries are worth pairing with which evidence: a typed compatibility table over the
@@ -134,11 +134,18 @@ class Candidate:
 
 @dataclass(frozen=True)
 class ReplayCase:
-    """A failure to replay: its trace, t_EOD step and whether t_EOD was located against I_succ."""
+    """A failure to replay: its trace, t_EOD step, whether t_EOD was located against I_succ, and the
+    frame the replay starts from (after the harness last handed back before t_EOD)."""
 
     trace: Trace
     t_eod: int
     referenced: bool = True
+    start: int = 0
+
+    @classmethod
+    def of(cls, trace: Trace, eod: Any) -> "ReplayCase":
+        """The case of a failure and its EOD (eod.EOD), replayed from the last hand-back before it."""
+        return cls(trace, eod.step, eod.referenced, resume_frame(trace, eod.step))
 
     def catches(self, step: int | None, window: int) -> bool:
         """Whether a critic firing at ``step`` catches this failure (see diagnose._near)."""
@@ -150,10 +157,10 @@ class ReplayCase:
 def score_critic(fn: Any, params: Mapping[str, float], medoid: ReplayCase,
                  members: Sequence[ReplayCase], successes: Sequence[Trace], window: int) -> tuple[int, float, float] | None:
     """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD."""
-    fire = first_fire(medoid.trace, fn, params)
+    fire = first_fire(medoid.trace, fn, params, start=medoid.start)
     if fire is None or not medoid.catches(fire, window):
         return None
-    caught = sum(1 for m in members if m.catches(first_fire(m.trace, fn, params), window))
+    caught = sum(1 for m in members if m.catches(first_fire(m.trace, fn, params, start=m.start), window))
     fp = sum(1 for t in successes if first_fire(t, fn, params) is not None)
     return fire, (1 + caught) / (1 + len(members)), fp / len(successes) if successes else 0.0
 

@@ -49,3 +49,16 @@ def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any], p
         if hit:
             return fs[k].step
     return None
+
+
+def resume_frame(trace: Trace, step: int) -> int:
+    """The first frame after the last intervention that ended at or before env step ``step`` (0 when
+    none did): where the policy had control back before a failure at ``step``. A critic firing
+    earlier already had its chance (it may be what started that intervention); what a new critic
+    must catch is the failure that followed the hand-back."""
+    ends = [int(iv.get("end_step", -1)) for iv in trace.interventions]
+    done = [e for e in ends if 0 <= e <= step]
+    if not done:
+        return 0
+    later = np.flatnonzero(trace.frame_step > max(done))
+    return int(later[0]) if len(later) else trace.frames

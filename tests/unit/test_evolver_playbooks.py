@@ -16,7 +16,7 @@ from services.evolver.evolve import ClusterRepair, EvolveConfig, Evolution, step
 from services.evolver.gate import GateParams
 from services.evolver.profile import SuccessIndex
 from services.evolver.repair import Candidate, ReplayCase, SearchParams, plan_of, search
-from services.evolver.replay import first_fire
+from services.evolver.replay import first_fire, resume_frame
 from services.evolver.rollout import RunConfig
 from services.evolver.store import EpisodeKey, RolloutStore
 from tests.unit.test_evolver_fixtures import make_trace
@@ -122,3 +122,26 @@ def test_stepping_stones_rank_by_progress_then_clean_hand_backs() -> None:
     assert step_rank(3, clean, 80) > step_rank(3, failed, 10)
     assert step_rank(3, clean, 10) > step_rank(3, clean, 80)
     assert step_rank(4, failed, 200) > step_rank(3, clean, 0)
+
+
+def test_replay_resumes_after_the_last_hand_back_before_the_failure() -> None:
+    """What a new critic must catch is what followed the last intervention that ended before t_EOD."""
+    tr = make_trace("drop", 4)
+    tr.interventions = [{"evidence": "grasp_lost", "start_step": 10, "end_step": 30, "outcome": "reentered"}]
+    assert resume_frame(tr, 50) == 16 and tr.frame_step[16] == 32
+    assert resume_frame(tr, 20) == 0  # not over yet at step 20
+    assert resume_frame(make_trace("drop", 4), 50) == 0
+
+
+def test_a_critic_whose_playbook_is_used_up_counts_as_silent(tmp_path: Path) -> None:
+    """Diagnosing a stepping stone: its critic fired again after its one use, but could not act; the
+    diagnosis treats it as silent, so the failure is a critic-layer miss a new critic can fill."""
+    tr = make_trace("drop", 4)
+    tr.interventions = [{"evidence": "grasp_lost", "start_step": 2, "end_step": 4, "outcome": "reentered"}]
+    eod = t_eod(tr, SuccessIndex.build([make_trace("success", s) for s in range(4)]))
+    critic = CriticDraft("grasp_lost", {"confirm": 3, "min_held": 5}, "grasp_lost", "acquire")
+    evo = Evolution(EvolveConfig("g", ("9",)), RolloutStore(tmp_path), RunConfig(gateway="127.0.0.1:1"), None)
+    once = PARENT.with_patch({"c_grasp_lost": critic}, {"grasp_lost": plan_of("acquire")})
+    again = PARENT.with_patch({"c_grasp_lost": critic}, {"grasp_lost": plan_of("carry")})
+    assert evo._case(tr, eod, "on(a,b)", once).fired["c_grasp_lost"] is None
+    assert evo._case(tr, eod, "on(a,b)", again).fired["c_grasp_lost"] is not None
