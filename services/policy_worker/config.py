@@ -38,6 +38,7 @@ class PolicyWorkerConfig:
         max_queue = env.int("ZETTA_MAX_QUEUE", 1024, minimum=1)
         delay_ms = env.float("ZETTA_MAX_QUEUE_DELAY_MS", SchedulerConfig.max_queue_delay * 1000, minimum=0.0)
         workers = env.int("ZETTA_INFERENCE_THREADS", 1, minimum=1)
+        early = env.bool("ZETTA_EARLY_DISPATCH", SchedulerConfig.early_dispatch)
         host = env.str("ZETTA_BIND_HOST", "127.0.0.1")
         port = env.int("ZETTA_POLICY_WORKER_PORT", 50071, minimum=0, maximum=65535)
         metrics_port = env.int("ZETTA_METRICS_PORT", 9103, minimum=-1, maximum=65535)
@@ -53,7 +54,8 @@ class PolicyWorkerConfig:
             metrics_port=metrics_port,
             models=models,
             scheduler=SchedulerConfig(
-                max_batch=max_batch, max_queue_delay=delay_ms / 1000.0, max_queue=max_queue, workers=workers
+                max_batch=max_batch, max_queue_delay=delay_ms / 1000.0, max_queue=max_queue, workers=workers,
+                early_dispatch=early,
             ),
             default_timeout_ms=timeout,
             grace_seconds=grace,

@@ -13,13 +13,16 @@ When a batch is dispatched:
     busy nothing goes out, so queues keep filling and the next batches are larger: under load
     batch size adapts to compute time without tuning;
   * when several groups are ready, the one whose oldest item arrived first is served first;
-  * a group is also ready at once when waiting cannot grow its batch: its queued and running
-    items together are as many as it ever held at one time over the last ``PEAK_WINDOW_SECONDS``
-    (and at least one). Requesters in a closed loop (an env worker's slot asks, waits for the
-    answer, steps, asks again) cannot send a second request before the first is answered, so
-    when every requester seen lately is already waiting, the delay would only add latency: with
-    one session it cost every action chunk ``max_queue_delay``. A group with no history (the
-    first request) goes out at once for the same reason; the peak follows the load up at once
+  * a group is also ready at once when waiting is not expected to grow its batch (early
+    dispatch): when its queued and running items together are as many as it ever held at one
+    time over the last ``PEAK_WINDOW_SECONDS`` (requesters in a closed loop, such as an env
+    worker's slot that asks, waits for the answer, steps and asks again, cannot send a second
+    request before the first is answered, so once every requester seen lately is waiting, no one
+    is left to join), or when its requests arrive so rarely that fewer than one is expected over
+    a whole ``max_queue_delay`` (the rate counted over the same windows). Without it a lone
+    session paid ``max_queue_delay`` on every action chunk, and on a machine that steps a few
+    hundred env steps per second every request waited about that long for nothing. A group with
+    no history goes out at once for the same reasons; the estimates follow the load up at once
     and down within two windows.
 
 Deadline rule: a request is failed with :class:`DeadlineExceededError`, without running, when at
@@ -246,37 +249,47 @@ class _Group:
 
 
 class _Occupancy:
-    """Items of one group in the scheduler (queued or running) and the most it held at once lately.
+    """Items of one group in the scheduler (queued or running), the most it held at once lately,
+    and how often its items arrive.
 
-    The peak is kept over two consecutive windows of ``PEAK_WINDOW_SECONDS`` (the current one and
-    the one before), so it forgets a burst between one and two windows after it ended.
+    Both are kept over two consecutive windows of ``PEAK_WINDOW_SECONDS`` (the current one and the
+    one before), so a burst is forgotten between one and two windows after it ended.
     """
 
-    __slots__ = ("running", "current", "previous", "window_start")
+    __slots__ = ("running", "peak_now", "peak_before", "count_now", "count_before", "window_start")
 
     def __init__(self, now: float) -> None:
         self.running = 0
-        self.current = 0
-        self.previous = 0
+        self.peak_now = self.peak_before = 0
+        self.count_now = self.count_before = 0
         self.window_start = now
 
     def _roll(self, now: float) -> None:
         elapsed = now - self.window_start
         if elapsed >= PEAK_WINDOW_SECONDS:
-            self.previous = self.current if elapsed < 2 * PEAK_WINDOW_SECONDS else 0
-            self.current = 0
+            recent = elapsed < 2 * PEAK_WINDOW_SECONDS
+            self.peak_before = self.peak_now if recent else 0
+            self.count_before = self.count_now if recent else 0
+            self.peak_now = self.count_now = 0
             self.window_start = now
 
     def arrived(self, in_system: int, now: float) -> None:
-        """Record that the group holds ``in_system`` items now (after an arrival)."""
+        """Record an arrival, after which the group holds ``in_system`` items."""
         self._roll(now)
-        if in_system > self.current:
-            self.current = in_system
+        self.count_now += 1
+        if in_system > self.peak_now:
+            self.peak_now = in_system
 
     def peak(self, now: float) -> int:
         """The most items the group held at once over the last one to two windows."""
         self._roll(now)
-        return max(self.current, self.previous)
+        return max(self.peak_now, self.peak_before)
+
+    def rate(self, now: float) -> float:
+        """Arrivals per second over the last one to two windows (counted over at least a whole
+        window, so a group with little history has a low rate rather than a noisy one)."""
+        self._roll(now)
+        return (self.count_before + self.count_now) / (PEAK_WINDOW_SECONDS + (now - self.window_start))
 
 
 class BatchScheduler:
@@ -483,8 +496,11 @@ class BatchScheduler:
         return best, timeout
 
     def _all_waiting(self, occupancy: _Occupancy, queued: int, now: float) -> bool:
-        """Whether the group holds as many items as it ever did lately: no absent requester to wait for."""
-        return self._config.early_dispatch and queued + occupancy.running >= occupancy.peak(now)
+        """Whether waiting is not expected to add a request: the group holds as many items as it
+        ever did lately, or fewer than one arrival is expected over a whole ``max_queue_delay``."""
+        config = self._config
+        return config.early_dispatch and (queued + occupancy.running >= occupancy.peak(now)
+                                          or occupancy.rate(now) * config.max_queue_delay < 1.0)
 
     def _dispatch(self, key: GroupKey, now: float) -> None:
         group = self._groups[key]

@@ -198,3 +198,11 @@ def test_policy_worker_vla_split_is_a_checked_boolean() -> None:
     assert PolicyWorkerConfig.from_env({"ZETTA_VLA_SPLIT": "1"}).vla_split is True
     with pytest.raises(ConfigError, match="ZETTA_VLA_SPLIT='maybe' is not a boolean"):
         PolicyWorkerConfig.from_env({"ZETTA_VLA_SPLIT": "maybe"})
+
+
+def test_policy_worker_early_dispatch_is_a_checked_boolean() -> None:
+    """ZETTA_EARLY_DISPATCH is on by default, off for false/0, and a typo stops the worker."""
+    assert PolicyWorkerConfig.from_env({}).scheduler.early_dispatch is True
+    assert PolicyWorkerConfig.from_env({"ZETTA_EARLY_DISPATCH": "false"}).scheduler.early_dispatch is False
+    with pytest.raises(ConfigError, match="ZETTA_EARLY_DISPATCH='soon' is not a boolean"):
+        PolicyWorkerConfig.from_env({"ZETTA_EARLY_DISPATCH": "soon"})

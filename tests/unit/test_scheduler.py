@@ -129,13 +129,27 @@ async def test_max_queue_delay_dispatches_partial_batch() -> None:
     model = FakeModel()
     config = SchedulerConfig(max_batch=8, max_queue_delay=0.05)
     async with BatchScheduler(model, config) as scheduler:
-        # Eight requesters were seen at once: three of them waiting can still be joined by others.
-        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(8))), GUARD)
+        # 64 requesters seen at once, at a rate that brings more within the delay: three waiting
+        # can still be joined by others, so they wait for them.
+        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(64))), GUARD)
         start = time.monotonic()
         await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"t{i}")) for i in range(3))), GUARD)
         elapsed = time.monotonic() - start
-    assert model.sizes == [8, 3]
+    assert model.sizes == [8] * 8 + [3]
     assert 0.04 <= elapsed < 1.0
+
+
+@pytest.mark.asyncio
+async def test_rare_requests_do_not_wait_for_company() -> None:
+    """Sixteen requesters were seen at once, but over the window requests come about 8 per second:
+    fewer than one is expected within a 50 ms delay, so a lone request goes out at once."""
+    model = FakeModel()
+    async with BatchScheduler(model, SchedulerConfig(max_batch=32, max_queue_delay=0.05)) as scheduler:
+        await asyncio.wait_for(asyncio.gather(*(scheduler.submit(make_item(f"w{i}")) for i in range(16))), GUARD)
+        start = time.monotonic()
+        await asyncio.wait_for(scheduler.submit(make_item("lone")), GUARD)
+        assert time.monotonic() - start < 0.04
+    assert model.sizes == [16, 1]
 
 
 @pytest.mark.asyncio
