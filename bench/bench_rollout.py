@@ -337,8 +337,8 @@ pick-and-place controller, one action per inference. {args.episodes_per_point} e
   warm-up (imports) is not counted either, its per-episode env build is (mean {setup.get('naive_build_s', 0):.2f} s
   of its {setup.get('naive_episode_s', 0):.2f} s per episode).
 - At concurrency 1 every step of the stack also pays an inference round trip to the policy worker
-  (its batching window, `ZETTA_MAX_QUEUE_DELAY_MS`, default 2 ms, plus the gRPC hops) that the in-process
-  naive loop does not; concurrency is what pays for it.
+  (the gRPC hops; its batching window, `ZETTA_MAX_QUEUE_DELAY_MS`, is skipped when no other request can
+  join) that the in-process naive loop does not; concurrency is what pays for it.
 - The machine has 2 cores for 5 busy processes (gateway, 2 env workers, policy worker, client) plus Redis:
   the stack's gain here comes from not rebuilding the env and from running 2 simulators in parallel; it
   cannot scale past the cores. Runs on a shared machine are noisy; compare rows of one run.
