@@ -154,8 +154,9 @@ def main(argv: Sequence[str]) -> int:
                 for suite in suites:
                     store = RolloutStore(a.out / suite)
                     t0 = time.time()
+                    # One registry serves every suite: the suite in the name keeps each task's versions apart.
                     cfg = EvolveConfig(suite=suite, tasks=tasks, rounds=a.rounds, dev_seeds=a.dev_seeds,
-                                       heldout_seeds=a.heldout_seeds, llm=llm_from_env())
+                                       heldout_seeds=a.heldout_seeds, name=f"evolved-{suite}", llm=llm_from_env())
                     Evolution(cfg, store, run, registry, bars).run()
                     store.record("wall", {"command": "experiment", "wall_s": time.time() - t0})
                     write_report(store, a.out / suite / "report", f"Evolution on {suite} tasks {a.tasks}",
