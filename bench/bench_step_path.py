@@ -1,8 +1,9 @@
 """Where an env worker's CPU per step goes on the slot path, and what a change saves, side by side.
 
 Three nested paths run the same recorded actions from the same reset states (LIBERO-Goal
-"put_the_cream_cheese_in_the_bowl", state only, fast step), and each is timed in thread CPU time
-per executed action (resets not counted: the stack and the bench's `limit` rows pay the same ones):
+"put_the_cream_cheese_in_the_bowl", state only, fast step), a fourth runs random actions for
+comparison, and each is timed in thread CPU time per executed action (resets not counted: the
+stack and the bench's `limit` rows pay the same ones):
 
 stepper  ``FastStepper.step`` alone: the physics kernel plus robosuite's own per-step Python (what
          `zetta bench rollout`'s `limit` row runs)
@@ -10,6 +11,8 @@ slot     ``slot.step(action, render=False)``: the stepper plus the canonical obs
          physical signals and the success check (the `limit-obs` row)
 chunk    ``EnvWorkerServicer._execute`` on chunks of 8 actions: the slot steps plus what the env
          worker adds on a slot thread (metrics, the StepResult of the chunk)
+random   ``FastStepper.step`` on fixed random actions (what the `limit` rows stepped before they
+         replayed the policy's), as many per episode as the policy took
 
 The actions are the shipped policy's own (``zetta-vla-state`` run in-process on each episode key
 once, then replayed), because a policy that grasps makes contact-rich, costlier physics than random
@@ -45,7 +48,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "put_the_cream_cheese_in_the_bowl"
-PATHS = ("stepper", "slot", "chunk")
+PATHS = ("stepper", "slot", "chunk", "random")
 CHUNK = 8
 
 
@@ -77,7 +80,9 @@ def record(out: Path, episodes: int, max_steps: int) -> None:
     family, slot = _slot(max_steps)
     with quiet_fds():
         policy = load_model(DEFAULT_MODEL)
-    actions = {}
+    from zetta.bench_sweep import random_replays
+
+    actions = {"random": random_replays(1, max_steps, 1)[0][1]}
     for k in range(episodes):
         obs, instruction = slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=k))
         done: list[np.ndarray] = []
@@ -114,9 +119,9 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
     bound.env = slot
 
     def run(path: str, actions: np.ndarray) -> float:
-        if path == "stepper":
+        if path in ("stepper", "random"):
             stepper = make_stepper(slot._env, True)
-            wide = actions.astype(np.float64)
+            wide = (actions if path == "stepper" else recorded["random"][:len(actions)]).astype(np.float64)
             t = time.thread_time()
             for a in wide:
                 stepper.step(a)
@@ -133,12 +138,12 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
 
     cpu: Counter[str] = Counter()
     steps = 0
-    keys = sorted(recorded.files, key=int)
+    keys = sorted((k for k in recorded.files if k != "random"), key=int)
     for key in keys:  # every key settled once, so the measured resets all restore the same snapshot
         slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=int(key)))
     for r, key in enumerate(keys):
         actions = recorded[key]
-        for path in PATHS[r % 3:] + PATHS[:r % 3]:  # rotating order
+        for path in PATHS[r % len(PATHS):] + PATHS[:r % len(PATHS)]:  # rotating order
             slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=int(key)))
             cpu[path] += run(path, actions)
         steps += len(actions)
@@ -268,7 +273,8 @@ def main() -> None:
         subprocess.run([sys.executable, str(Path(__file__).resolve()), "--record", str(actions), "--episodes",
                         str(args.episodes), "--max-steps", str(args.max_steps)], cwd=ROOT, check=True,
                        stdout=subprocess.DEVNULL)
-        lengths = [len(v) for v in np.load(actions).values()]
+        recorded = np.load(actions)
+        lengths = [len(recorded[k]) for k in recorded.files if k != "random"]
         log(f"recorded the policy's actions on {len(lengths)} keys ({sum(lengths)} steps) in "
             f"{time.perf_counter() - t0:.0f} s; load average {os.getloadavg()[0]:.1f}")
         trees = {"this tree": ROOT}
@@ -293,7 +299,8 @@ def main() -> None:
     rows = [(p, {n: medians[n][p] for n in names}) for p in PATHS]
     rows += [("slot - stepper (obs)", {n: medians[n]["slot"] - medians[n]["stepper"] for n in names}),
              ("chunk - slot (env worker)", {n: medians[n]["chunk"] - medians[n]["slot"] for n in names}),
-             ("stepper / chunk", {n: medians[n]["stepper"] / medians[n]["chunk"] for n in names})]
+             ("stepper / chunk", {n: medians[n]["stepper"] / medians[n]["chunk"] for n in names}),
+             ("random / stepper", {n: medians[n]["random"] / medians[n]["stepper"] for n in names})]
     for label, values in rows:
         line = f"{label:<28}" + "".join(f"{values[n]:>14.3f}" for n in names)
         if len(names) == 2 and values[names[1]]:
