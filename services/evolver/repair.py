@@ -222,22 +222,12 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
     if not spec.repairable:
         return []
     preds, recs = library()
-    critics: list[tuple[tuple[float, float, int, int], str, dict[str, float], tuple[int, float, float]]] = []
+    critics = []
     for template in _templates_for(spec, parent, preds):
-        ps = preds[template]
-        best = None
-        for setting in param_grid(ps.params, params.max_param_edits, params.grid_fraction):
-            res = score_critic(ps.fn, setting, medoid, members, successes, params.window)
-            if res is None or res[2] > params.max_false_positive:
-                continue
-            base = parent.critics.get(f"c_{template}")
-            edits = sum(1 for k, v in setting.items() if (base.params if base else
-                                                          {k: p.default for k, p in ps.params.items()}).get(k) != v)
-            key = (-res[1], res[2], abs(res[0] - medoid.t_eod), edits)
-            if best is None or key < best[0]:
-                best = (key, template, setting, res)
+        base = parent.critics.get(f"c_{template}")
+        best = _best_setting(preds[template], base.params if base else None, medoid, members, successes, params)
         if best is not None:
-            critics.append(best)
+            critics.append((best[0], template, best[1], best[2]))
     critics.sort(key=lambda c: (c[0], c[1]))
     scored: list[tuple[tuple[int, int], Candidate]] = []
     for ci, (_, template, setting, res) in enumerate(critics):
@@ -255,6 +245,24 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
             scored.append(((ci + pi, pi), cand))
     scored.sort(key=lambda x: x[0])
     return [c for _, c in scored[: params.max_candidates]]
+
+
+def _best_setting(spec: Any, current: Mapping[str, float] | None, medoid: ReplayCase, members: Sequence[ReplayCase],
+                  successes: Sequence[Trace], params: SearchParams
+                  ) -> tuple[tuple[float, float, int, int], dict[str, float], tuple[int, float, float]] | None:
+    """A predicate template's best setting on the bounded grid, with its rank key (cluster coverage,
+    false positives, distance of the firing from t_EOD, parameters changed from ``current`` or the
+    defaults) and its replay score; None when no setting catches the medoid within the bounds."""
+    reference = dict(current) if current is not None else {k: p.default for k, p in spec.params.items()}
+    best = None
+    for setting in param_grid(spec.params, params.max_param_edits, params.grid_fraction):
+        res = score_critic(spec.fn, setting, medoid, members, successes, params.window)
+        if res is None or res[2] > params.max_false_positive:
+            continue
+        key = (-res[1], res[2], abs(res[0] - medoid.t_eod), sum(reference.get(k) != v for k, v in setting.items()))
+        if best is None or key < best[0]:
+            best = (key, setting, res)
+    return best
 
 
 def stage_of(m_star: str) -> tuple[str, ...]:
