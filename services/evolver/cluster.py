@@ -22,10 +22,16 @@ from services.evolver.trace import STATE_DIM, Trace, relative_state
 
 @dataclass(frozen=True)
 class ClusterParams:
-    """Complete-linkage cut (in scaled feature units) and the weight of t_EOD's timing."""
+    """Complete-linkage cut (in scaled feature units), the weight of t_EOD's timing, and the most
+    members a cluster may have (0: no limit)."""
 
     radius: float = 4.0
     time_weight: float = 4.0
+    #: A cluster is one mechanism repaired together: its medoid gets the diagnosis and the gate asks
+    #: its patches to solve every member (historical regression). Many dev seeds failing the same
+    #: way make one huge cluster where a patch that solves 35 of 40 fails the gate; capped, the
+    #: same failures form several tight clusters, each diagnosed and regressed on its own.
+    max_size: int = 10
 
 
 @dataclass
@@ -76,15 +82,18 @@ def medoid(features: np.ndarray) -> int:
     return int(d.sum(axis=1).argmin())
 
 
-def complete_linkage(features: np.ndarray, radius: float) -> list[list[int]]:
+def complete_linkage(features: np.ndarray, radius: float, max_size: int = 0) -> list[list[int]]:
     """Agglomerative clustering: merge the two clusters with the smallest maximum pairwise distance
-    while it is at most ``radius``. Deterministic; O(n^3), fine for tens of failures per m*."""
+    while it is at most ``radius``, never into one of more than ``max_size`` members (0: no limit).
+    Deterministic; O(n^3), fine for tens of failures per m*."""
     d = np.linalg.norm(features[:, None, :] - features[None, :, :], axis=-1)
     groups = [[i] for i in range(len(features))]
     while len(groups) > 1:
         best, pair = np.inf, (0, 0)
         for a in range(len(groups)):
             for b in range(a + 1, len(groups)):
+                if max_size and len(groups[a]) + len(groups[b]) > max_size:
+                    continue
                 link = d[np.ix_(groups[a], groups[b])].max()
                 if link < best:
                     best, pair = link, (a, b)
@@ -106,7 +115,7 @@ def cluster_failures(failures: Sequence[Failure], traces: Sequence[Trace], eods:
     clusters: list[Cluster] = []
     for m_star in sorted({f.m_star for f in failures}):
         rows = [i for i, f in enumerate(failures) if f.m_star == m_star]
-        for group in complete_linkage(feats[rows], params.radius):
+        for group in complete_linkage(feats[rows], params.radius, params.max_size):
             idx = [rows[g] for g in group]
             sub = feats[idx]
             clusters.append(Cluster(cid="", m_star=m_star, members=[failures[i] for i in idx],

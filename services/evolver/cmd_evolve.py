@@ -115,11 +115,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
     p.add_argument("--eod-epsilon", type=float, default=EODParams().epsilon)
     p.add_argument("--cluster-radius", type=float, default=ClusterParams().radius)
+    p.add_argument("--cluster-max-size", type=int, default=ClusterParams().max_size,
+                   help="most failures per cluster (0: no limit)")
     a = p.parse_args(argv)
     store_dir = a.store or Path("runs") / f"evolve-{a.suite}"
     cfg = EvolveConfig(suite=a.suite, tasks=tasks_of(a.tasks), rounds=a.rounds, dev_seeds=a.dev_seeds,
                        heldout_seeds=a.heldout_seeds, name=a.name, max_clusters=a.max_clusters,
-                       eod=EODParams(epsilon=a.eod_epsilon), cluster=ClusterParams(radius=a.cluster_radius),
+                       eod=EODParams(epsilon=a.eod_epsilon), cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
                        llm=llm_from_env(), max_depth=a.max_depth)
     store = RolloutStore(store_dir)

@@ -74,6 +74,13 @@ def test_complete_linkage_cuts_at_the_radius() -> None:
     assert complete_linkage(f, 10.0) == [[0, 1, 2, 3, 4]]
 
 
+def test_complete_linkage_caps_the_cluster_size() -> None:
+    """With a size cap the closest members still go together, but no cluster outgrows it."""
+    f = np.array([[0.0], [0.1], [0.2], [0.3], [5.0]])
+    assert complete_linkage(f, 10.0, max_size=2) == [[0, 1], [2, 3], [4]]
+    assert complete_linkage(f, 10.0, max_size=4) == [[0, 1, 2, 3], [4]]
+
+
 def test_failures_cluster_by_mechanism_with_a_member_medoid() -> None:
     """Misses and drops never share a cluster (different m*), and each cluster's medoid is a member."""
     idx = index()
