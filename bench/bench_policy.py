@@ -156,10 +156,10 @@ def main() -> None:
     rows = sample_inputs(32)
     batch = {n: np.stack([r[n] for r in rows]) for n, _ in STATE_INPUTS}
     for name, pol in (("float", flt), ("w8a8", q)):
-        pol.encode_batch(batch, [instruction] * 32)
+        pol.encode(batch, [instruction] * 32)
         t0, k = time.perf_counter(), 0
         while time.perf_counter() - t0 < 1.0:
-            pol.encode_batch(batch, [instruction] * 32)
+            pol.encode(batch, [instruction] * 32)
             k += 1
         print(f"stage 1 (VLM) only, batch 32, {name}: {(time.perf_counter() - t0) / k * 1000:.2f} ms")
     del _t

@@ -118,6 +118,44 @@ def test_split_matches_monolithic_and_honours_deadlines(instruction, monkeypatch
         assert np.allclose(x[:, :6], y[:, :6], atol=1e-4)
 
 
+def test_state_vector_is_built_once_per_batch(policy, instruction, monkeypatch) -> None:
+    """The prefix and the noise seeds read one state vector: it is concatenated once per batch."""
+    import services.policy_worker.vla.policy as policy_module
+
+    calls = []
+    real = policy_module.state_vector
+    monkeypatch.setattr(policy_module, "state_vector", lambda *a, **k: calls.append(1) or real(*a, **k))
+    policy.infer(_batch(4), [instruction] * 4)
+    assert len(calls) == 1
+
+
+def test_split_worker_holds_one_copy_of_each_stage(instruction, monkeypatch) -> None:
+    """With ZETTA_VLA_SPLIT the worker's loaded VLA becomes the split's stage 1 (its action expert
+    freed), instead of a second copy loaded beside it; the AE process holds stage 2 alone."""
+    from services.policy_worker.scheduler import BatchScheduler
+    from services.policy_worker.vla.split import SplitRouter, wrap_for_split
+
+    monkeypatch.delenv("ZETTA_VLA_NOISE", raising=False)
+    model = ZettaVLAPolicy()
+    expected = model.infer(_batch(1), [instruction])[0]
+    cfg = SchedulerConfig(max_batch=4, max_queue_delay=0.002)
+    models = {"zetta-vla-state": model}
+
+    async def go():
+        router = wrap_for_split(BatchScheduler(lambda m, x, i: models[m].infer(x, i), cfg), models, cfg)
+        assert isinstance(router, SplitRouter)
+        try:
+            assert router._split["zetta-vla-state"].policy is model
+            assert hasattr(model.model, "encoder") and not hasattr(model.model, "expert")
+            item = InferItem("t", "zetta-vla-state", {k: v[0] for k, v in _batch(1).items()}, instruction,
+                             deadline=time.monotonic() + 10)
+            return await router.submit(item)
+        finally:
+            await router.drain()
+
+    assert np.allclose(asyncio.run(go()), expected, atol=1e-4)
+
+
 def test_adapter_contract_with_our_model(policy, instruction, monkeypatch) -> None:
     from services.policy_worker.vla.adapter import (
         AdapterContractError, ExternalPolicyAdapter, ZettaVLAAdapter, check_actions, register_adapter)
@@ -186,9 +224,9 @@ def test_gaussian_start_is_seeded_per_request(instruction) -> None:
     first = a.infer(batch, [instruction] * 3)
     assert np.array_equal(first, b.infer(batch, [instruction] * 3))
     assert np.array_equal(first, a.infer(batch, [instruction] * 3)), "a repeated request replays"
-    seeds = a.request_seeds(batch, [instruction] * 3)
+    seeds = a.request_seeds(a.state_inputs(batch), [instruction] * 3)
     assert len(set(seeds.tolist())) == 3, "each observation its own draw"
-    other = ZettaVLAPolicy(seed=6).request_seeds(batch, [instruction] * 3)
+    other = ZettaVLAPolicy(seed=6).request_seeds(a.state_inputs(batch), [instruction] * 3)
     assert not set(seeds.tolist()) & set(other.tolist())
     zero = ZettaVLAPolicy(noise="zero").infer(batch, [instruction] * 3)
     assert not np.array_equal(first[..., :6], zero[..., :6])

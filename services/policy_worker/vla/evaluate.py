@@ -51,6 +51,7 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
                         break
             results.put({"suite": suite, "task": task, "seed": seed, "init_state_index": init,
                          "instruction": instruction, "success": bool(success), "steps": steps,
+                         "first_missing_milestone": "" if success else slot.first_missing_milestone(),
                          "seconds": round(time.monotonic() - t0, 2)})
         except Exception as exc:  # noqa: BLE001 - reported as an invalid episode, not a failure
             results.put({"suite": suite, "task": task, "seed": seed, "init_state_index": init, "error": repr(exc)})

@@ -50,8 +50,8 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[ZettaVLA, dict, dict[str, 
 class ZettaVLAPolicy:
     """Monolithic serving of both stages in one process (the split mode lives in ``split.py``).
 
-    ``encode_batch`` and ``act_batch`` are the two stages on numpy in and out, so the split
-    server and the quantization plug-in can work on either one alone.
+    ``encode`` and ``act_batch`` are the two stages, so the split server and the quantization
+    plug-in can work on either one alone.
     """
 
     def __init__(self, checkpoint: str | os.PathLike = STATE_CHECKPOINT, name: str = "zetta-vla-state",
@@ -74,6 +74,7 @@ class ZettaVLAPolicy:
         #: episodes amplify that), so episode keys replay through a batching server, at the cost
         #: of batching's speed-up.
         self.batch_invariant = os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "0") not in ("", "0", "false")
+        self.checkpoint = str(checkpoint)
         self.model, self.meta, cache = load_checkpoint(checkpoint)
         self.device = torch.device(device)
         self.model.to(self.device)
@@ -81,30 +82,38 @@ class ZettaVLAPolicy:
         self.name = name
         self.chunk_size = self.cfg.chunk
         self.text = TextEncoder(cache)
+        self.quantize = quantize
         self.quantized: list[str] = []
         if quantize:
             from services.policy_worker.vla.quant import quantize_modules
 
             self.quantized = quantize_modules(self.model, quantize.split(","))
 
+    def keep_stage(self, stage: int) -> None:
+        """Free the other stage's weights: a split-serving process runs one stage and should hold
+        one copy of it, not the whole model (after this, only that stage's methods work)."""
+        if stage not in (1, 2):
+            raise ValueError(f"stage must be 1 (VLM) or 2 (action expert), got {stage}")
+        del self.model._modules["expert" if stage == 1 else "encoder"]
+
     def input_specs(self) -> list[TensorSpec]:
         return state_specs(self.cfg.image_size)
 
-    @torch.inference_mode()
-    def encode_batch(self, batch: dict[str, np.ndarray], instructions: list[str]) -> torch.Tensor:
-        """Stage 1: prefix [B, prefix_tokens, width] on the model's device."""
-        text = torch.from_numpy(self.text.encode(instructions)).to(self.device)
-        if self.cfg.image_size:
-            state = torch.from_numpy(state_vector(batch, PROPRIO_INPUTS)).to(self.device)
-            image = torch.from_numpy(np.ascontiguousarray(batch[IMAGE_INPUTS[0]])).to(self.device)
-            return self.model.encode(state, text, image)
-        state = torch.from_numpy(state_vector(batch, STATE_INPUTS)).to(self.device)
-        return self.model.encode(state, text)
-
-    def request_seeds(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        """One noise seed per request, a hash of its state inputs and instruction (int64 [B])."""
+    def state_inputs(self, batch: dict[str, np.ndarray]) -> np.ndarray:
+        """The [B, D] float32 state vector stage 1 reads (proprioception alone for the image
+        variant); :meth:`encode` builds it once per batch for both the prefix and the noise seeds."""
         names = PROPRIO_INPUTS if self.cfg.image_size else STATE_INPUTS
-        state = np.ascontiguousarray(state_vector(batch, names), dtype=np.float32)
+        return np.ascontiguousarray(state_vector(batch, names), dtype=np.float32)
+
+    @torch.inference_mode()
+    def encode_batch(self, state: np.ndarray, instructions: list[str], image: np.ndarray | None = None) -> torch.Tensor:
+        """Stage 1 in one call: prefix [B, prefix_tokens, width] on the model's device."""
+        text = torch.from_numpy(self.text.encode(instructions)).to(self.device)
+        pixels = torch.from_numpy(np.ascontiguousarray(image)).to(self.device) if image is not None else None
+        return self.model.encode(torch.from_numpy(state).to(self.device), text, pixels)
+
+    def request_seeds(self, state: np.ndarray, instructions: list[str]) -> np.ndarray:
+        """One noise seed per request, a hash of its state vector and instruction (int64 [B])."""
         out = np.empty(len(instructions), np.int64)
         for i, text in enumerate(instructions):
             digest = hashlib.blake2b(state[i].tobytes(), digest_size=8, key=self.seed.to_bytes(8, "little"))
@@ -120,12 +129,18 @@ class ZettaVLAPolicy:
         draws = [torch.randn(shape, generator=torch.Generator().manual_seed(int(s))) for s in seeds]
         return torch.stack(draws).to(self.device)
 
-    def encode(self, batch: dict[str, np.ndarray], instructions: list[str]) -> torch.Tensor:
-        """Stage 1 as served: one batched call, or row by row when :attr:`batch_invariant`."""
+    def encode(self, batch: dict[str, np.ndarray], instructions: list[str]) -> tuple[torch.Tensor, np.ndarray]:
+        """Stage 1 as served, with each request's noise seed (:meth:`request_seeds`), both from one
+        state vector: one batched call, or row by row when :attr:`batch_invariant`."""
+        state = self.state_inputs(batch)
+        image = batch[IMAGE_INPUTS[0]] if self.cfg.image_size else None
         if not self.batch_invariant or len(instructions) == 1:
-            return self.encode_batch(batch, instructions)
-        return torch.cat([self.encode_batch({k: v[i:i + 1] for k, v in batch.items()}, instructions[i:i + 1])
-                          for i in range(len(instructions))])
+            prefix = self.encode_batch(state, instructions, image)
+        else:
+            prefix = torch.cat([self.encode_batch(state[i:i + 1], instructions[i:i + 1],
+                                                  None if image is None else image[i:i + 1])
+                                for i in range(len(instructions))])
+        return prefix, self.request_seeds(state, instructions)
 
     @torch.inference_mode()
     def act_tensor(self, prefix: torch.Tensor, seeds: np.ndarray) -> torch.Tensor:
@@ -141,7 +156,7 @@ class ZettaVLAPolicy:
         return self.act_tensor(prefix, seeds).float().cpu().numpy()
 
     def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        return self.act_batch(self.encode(batch, instructions), self.request_seeds(batch, instructions))
+        return self.act_batch(*self.encode(batch, instructions))
 
 
 def _threads() -> int:

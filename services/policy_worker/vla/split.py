@@ -53,7 +53,7 @@ def _ae_main(checkpoint: str, quantize: str, device: str, threads: int, prefixes
     from services.policy_worker.vla.policy import ZettaVLAPolicy
 
     policy = ZettaVLAPolicy(checkpoint, quantize=quantize, device=device)
-    del policy.model.encoder  # this process runs stage 2 only
+    policy.keep_stage(2)
 
     def run_batch(_model: str, inputs: dict[str, np.ndarray], _instr: list[str]) -> np.ndarray:
         slots = torch.from_numpy(inputs["slot"].astype(np.int64)).to(prefixes.device)
@@ -102,19 +102,26 @@ def _ae_main(checkpoint: str, quantize: str, device: str, threads: int, prefixes
 
 
 class SplitVLA:
-    """Two-process serving of one Zetta VLA checkpoint (see the module docstring)."""
+    """Two-process serving of one Zetta VLA checkpoint (see the module docstring).
+
+    ``policy``: a loaded :class:`ZettaVLAPolicy` to serve stage 1 from (the policy worker's own,
+    so its process holds one copy of the VLM and none of the action expert); without it the
+    checkpoint is loaded here. Either way this process keeps stage 1 only.
+    """
 
     def __init__(self, checkpoint: str | None = None, quantize: str = "", device: str = "cpu",
                  vlm: SchedulerConfig | None = None, ae: SchedulerConfig | None = None,
                  slots: int = 4096, threads: int = 1, name: str = "zetta-vla-state",
-                 observer: SchedulerObserver | None = None) -> None:
+                 observer: SchedulerObserver | None = None, policy=None) -> None:
         from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy
 
         torch.set_num_threads(max(1, threads))
         self.name = name
-        checkpoint = str(checkpoint or STATE_CHECKPOINT)
-        self.policy = ZettaVLAPolicy(checkpoint, quantize=quantize, device=device)
-        del self.policy.model.expert  # this process runs stage 1 only
+        if policy is None:
+            policy = ZettaVLAPolicy(str(checkpoint or STATE_CHECKPOINT), quantize=quantize, device=device)
+        checkpoint, quantize, device = policy.checkpoint, policy.quantize, str(policy.device)
+        self.policy = policy
+        self.policy.keep_stage(1)
         cfg = self.policy.cfg
         self.chunk_size = cfg.chunk
         dev = torch.device(device)
@@ -150,11 +157,11 @@ class SplitVLA:
         return self.policy.input_specs()
 
     def _encode_batch(self, _model: str, inputs: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
-        prefix = self.policy.encode(inputs, instructions)
+        prefix, seeds = self.policy.encode(inputs, instructions)
         slots = self._ring.take(len(prefix))
         idx = torch.tensor(slots, device=self.prefixes.device)
         self.prefixes.index_copy_(0, idx, prefix.to(self.prefixes.dtype))
-        self.seeds[slots] = torch.from_numpy(self.policy.request_seeds(inputs, instructions))
+        self.seeds[slots] = torch.from_numpy(seeds)
         if self.prefixes.is_cuda:
             torch.cuda.synchronize()
         return np.asarray(slots, np.int64)
@@ -266,14 +273,17 @@ class SplitRouter:
 
 def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerConfig,
                    observer: SchedulerObserver | None = None):
-    """What main.py calls when ZETTA_VLA_SPLIT is set: a SplitRouter when a state VLA is served."""
+    """What main.py calls when ZETTA_VLA_SPLIT is set: a SplitRouter when a state VLA is served.
+
+    Each state VLA the worker loaded becomes the stage-1 half of its SplitVLA (its action expert is
+    freed here and loaded in the AE process), so the worker holds one copy of each stage in all; the
+    router sends that model's requests to the split, never to ``models[name].infer``.
+    """
     from services.policy_worker.vla.policy import ZettaVLAPolicy
 
     split = {}
     for name, model in models.items():
         if isinstance(model, ZettaVLAPolicy) and not model.cfg.image_size:
-            ckpt = os.environ.get("ZETTA_VLA_CHECKPOINT") or None
-            split[name] = SplitVLA(ckpt, quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), device=str(model.device),
-                                   vlm=config, ae=config, threads=int(os.environ.get("ZETTA_TORCH_THREADS", "1")),
-                                   name=name, observer=observer)
+            split[name] = SplitVLA(vlm=config, ae=config, threads=int(os.environ.get("ZETTA_TORCH_THREADS", "1")),
+                                   name=name, observer=observer, policy=model)
     return SplitRouter(scheduler, split) if split else scheduler
