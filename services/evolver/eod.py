@@ -7,8 +7,10 @@ has no state at that milestone (no success got there, e.g. a policy with no succ
 there is no reference to diverge from: t_EOD falls back to the point of closest approach after the
 failure's last milestone gain (the m*-1 -> m* transition the paper focuses on): the hand's closest
 approach to the object while not holding it, the object's closest approach to the target while
-holding it. From there on the rollout moves away from what m* needs. The EOD says it was not
-referenced.
+holding it. From there on the rollout moves away from what m* needs. The same fallback serves a
+failure that never strays farther than epsilon from I_succ (a policy that sometimes succeeds
+fails near its successful states): the end of the episode would be no place to repair. The EOD
+says it was not referenced.
 """
 
 from __future__ import annotations
@@ -72,10 +74,6 @@ def t_eod(trace: Trace, index: SuccessIndex, params: EODParams = EODParams()) ->
         if run >= params.persist:
             first = k - params.persist + 1
             return EOD(first, int(trace.frame_step[first]), float(d[first]), int(prog[first]), True)
-    if np.isfinite(d).all() and trace.frames:
-        # Never left the nominal distribution: the divergence is the outcome itself, at the end.
-        last = trace.frames - 1
-        return EOD(last, int(trace.frame_step[last]), float(d[last]), int(prog[last]), True)
     final = int(prog[-1]) if trace.frames else 0
     gained = np.flatnonzero(prog == final)
     first = int(gained[0]) if len(gained) else 0

@@ -223,14 +223,14 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
         return []
     preds, recs = library()
     critics = []
-    for template in _templates_for(spec, parent, preds):
+    for order, template in enumerate(_templates_for(spec, parent, preds)):
         base = parent.critics.get(f"c_{template}")
         best = _best_setting(preds[template], base.params if base else None, medoid, members, successes, params)
         if best is not None:
-            critics.append((best[0], template, best[1], best[2]))
+            critics.append((best[0], order, template, best[1], best[2]))
     critics.sort(key=lambda c: (c[0], c[1]))
     scored: list[tuple[tuple[int, int], Candidate]] = []
-    for ci, (_, template, setting, res) in enumerate(critics):
+    for ci, (_, _, template, setting, res) in enumerate(critics):
         for pi, plan in enumerate(recovery_options(template, spec.m_star, recs, holding=preds[template].holding)):
             critic = CriticDraft(template, setting, evidence=template, mode=plan.playbook or plan.recovery,
                                  missing=plan_stages(plan, spec.m_star))
@@ -275,14 +275,16 @@ def stage_of(m_star: str) -> tuple[str, ...]:
 
 
 def _templates_for(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any]) -> list[str]:
-    """Which predicate templates the layer allows: new detectors for a critic/plan failure, the
-    parent's own critics (re-parameterized or re-paired) for a recovery/param failure."""
+    """Which predicate templates the layer allows, preferred first (they win ties in the ranking):
+    new detectors for a critic failure (those seen firing near t_EOD first) or a plan failure (the
+    motion detectors first: a blocked or stalled arm is what the layer saw; the others still
+    qualify by replay, as the failure may show first in another signal), the parent's own critics
+    (re-parameterized or re-paired) for a recovery/param failure."""
     evidence = sorted(t for t in preds if t not in NOT_EVIDENCE)
-    if spec.layer == "critic":
-        near = [t for t in spec.detect_near if t in evidence]
+    if spec.layer in ("critic", "plan"):
+        first = spec.detect_near if spec.layer == "critic" else ("blocked_motion", "stalled_progress")
+        near = [t for t in first if t in evidence]
         return near + [t for t in evidence if t not in near]
-    if spec.layer == "plan":
-        return [t for t in ("blocked_motion", "stalled_progress") if t in preds]
     if spec.layer in ("recovery", "param"):
         return sorted({c.template for c in parent.critics.values() if c.template in preds}) or evidence
     return []

@@ -44,11 +44,14 @@ def test_eod_is_zero_on_success_and_finds_the_divergence() -> None:
 
 
 def test_eod_threshold_is_a_parameter() -> None:
-    """A looser epsilon moves t_EOD later (or to the end), never earlier."""
+    """A looser epsilon moves t_EOD later; one the failure never exceeds (it stays near the
+    successes throughout) falls back to the closest approach, not to the end of the episode."""
     idx = index()
     tr = make_trace("drop", 5)
-    tight, loose = t_eod(tr, idx, EODParams(epsilon=2.0)), t_eod(tr, idx, EODParams(epsilon=50.0))
-    assert loose.frame >= tight.frame
+    tight, mid = t_eod(tr, idx, EODParams(epsilon=2.0)), t_eod(tr, idx, EODParams(epsilon=3.0))
+    assert tight.referenced and mid.referenced and mid.frame >= tight.frame
+    loose = t_eod(tr, idx, EODParams(epsilon=50.0))
+    assert not loose.referenced and loose.frame == t_eod(tr, SuccessIndex.build([])).frame < tr.frames - 1
 
 
 def test_eod_without_any_success_falls_back_to_the_closest_approach() -> None:

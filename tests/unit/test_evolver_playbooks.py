@@ -145,3 +145,15 @@ def test_a_critic_whose_playbook_is_used_up_counts_as_silent(tmp_path: Path) -> 
     again = PARENT.with_patch({"c_grasp_lost": critic}, {"grasp_lost": plan_of("carry")})
     assert evo._case(tr, eod, "on(a,b)", once).fired["c_grasp_lost"] is None
     assert evo._case(tr, eod, "on(a,b)", again).fired["c_grasp_lost"] is not None
+
+
+def test_a_plan_layer_prefers_motion_detectors_but_searches_all() -> None:
+    """A blocked or stalled arm is what the plan layer saw, so those detectors come first; any other
+    template may still qualify by replay instead of leaving the cluster without a candidate."""
+    from services.evolver.diagnose import RepairSpec
+    from services.evolver.repair import _templates_for
+
+    spec = RepairSpec("7/r1/K1", "plan", "reached(a)", 100, "key", (), 1.0, ())
+    names = _templates_for(spec, PARENT, PREDICATES)
+    assert names[:2] == ["blocked_motion", "stalled_progress"] and "non_approach" in names
+    assert not {"grasp_retained", "supported_placement"} & set(names)
