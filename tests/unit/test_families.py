@@ -33,7 +33,7 @@ from services.env_worker.families.base import (
 CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 PRIVILEGED = {
     "task_object_pos", "task_object_quat", "task_target_pos", "task_object_bbox", "task_target_bbox",
-    "task_grasped", "object_state",
+    "task_grasped", "task_obstacle_bbox", "object_state",
 } | {s.name for s in milestone_specs() + signal_specs()}
 
 
@@ -211,6 +211,27 @@ def test_a_step_evaluates_each_goal_predicate_once(libero_slot, monkeypatch: pyt
     calls.clear()
     assert outcome.success == env._check_success() == env._check_success()
     assert len(calls) == 2 * len(goal)
+
+
+def test_obstacles_are_what_stands_around_the_stage_not_what_it_moves() -> None:
+    """LIBERO-Goal-S "put the bowl on the stove": the swap puts the stove under the wine rack, whose
+    slats overhang the cook region; the oracle can only carry the bowl around what it is told of."""
+    family = get_family("libero")({"suite": "libero_goal_swap"})
+    try:
+        slot = family.init()
+        obs, instruction = slot.reset(ResetSpec("1", seed=0, init_state_index=0))
+        assert instruction == "put the bowl on the stove"
+        boxes, bowl, region = obs["task_obstacle_bbox"], obs["task_object_bbox"], obs["task_target_bbox"]
+        rows = boxes[boxes.any(axis=1)]
+        assert 10 <= len(rows) <= len(boxes)
+        assert not any(np.allclose(r, bowl) for r in rows), "the moved object is not its own obstacle"
+        over = rows[(rows[:, 2] > region[5]) & (rows[:, 0] < region[3]) & (rows[:, 3] > region[0])
+                    & (rows[:, 1] < region[4]) & (rows[:, 4] > region[1])]
+        assert len(over), "the rack's slats hang over the cook region"
+        table = rows[(rows[:, 5] <= bowl[2] + 1e-3) & (rows[:, 0] < bowl[0]) & (rows[:, 3] > bowl[3])]
+        assert len(table), "the table the objects stand on is reported"
+    finally:
+        family.close()
 
 
 def test_slots_share_compiled_model_and_warm_envs(libero, libero_slot) -> None:

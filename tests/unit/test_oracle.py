@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.env_worker.families.task_state import OBSTACLE_SLOTS
 from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
 from services.policy_worker.models.base import FACTORIES, load_model
 from services.policy_worker.models.oracle import DOWN, OraclePolicy
@@ -108,3 +109,110 @@ def test_an_object_that_fits_is_lowered_into_a_deep_dish() -> None:
     assert policy._sink(cheese) == 0.0, "too wide to fit: let go above the rim, as before"
     plate = _row("on", bottle, [-0.17, -0.06, 0.9, -0.03, 0.08, 0.919], [-0.096, 0.013, 1.13], grasped=True)
     assert policy._sink(plate) == 0.0, "a shallow dish is not sunk into"
+
+
+def _obstacles(*boxes: list[float]) -> np.ndarray:
+    out = np.zeros((OBSTACLE_SLOTS, 6))
+    if boxes:
+        out[: len(boxes)] = boxes
+    return out
+
+
+# LIBERO-Goal-S 1 (put the bowl on the stove), measured from the scene: the swap puts the stove's cook
+# region (a thin site box under the stove's top) under two slats of the wine rack (tilted boards,
+# here their boxes), the stove's knobs beside it.
+SWAP_BOWL = [-0.246, -0.118, 0.9, -0.139, -0.011, 0.951]
+COOK_REGION = [-0.189, -0.323, 0.902, -0.039, -0.173, 0.908]
+RACK_SLATS = ([-0.402, -0.278, 1.002, -0.133, -0.139, 1.092], [-0.399, -0.147, 1.009, -0.135, -0.137, 1.025])
+STOVE = [-0.209, -0.343, 0.885, -0.019, -0.153, 0.925]
+KNOB = [0.018, -0.261, 0.906, 0.088, -0.237, 0.955]
+
+
+def test_near_its_elbow_limit_the_hand_pitches_toward_the_base() -> None:
+    policy = OraclePolicy()
+    cheese = [-0.437, 0.205, 0.9, -0.356, 0.247, 0.918]
+    row = _row("in", cheese, [-0.255, -0.097, 0.9, -0.148, 0.01, 0.951], [-0.40, 0.21, 1.0], grasped=False)
+    row["robot0_joint_pos"] = np.array([0.15, 0.0, 0.5, -2.44, 0.0, 2.2, 1.0])
+    assert np.all(policy.act(row)[3:6] == 0.0), "elbow far from its limit: the hand is left as it is"
+    row["robot0_joint_pos"][3] = -2.95
+    rotation = policy.act(row)[3:6]
+    assert rotation[1] > 0.1, "pitched about +y: the fingertips point back toward the base (-x)"
+    assert policy._elbow_pitch(row) == policy.params.max_pitch
+    plate = _row("on", [-0.45, 0.1, 0.9, -0.3, 0.25, 0.92], COOK_REGION, [-0.40, 0.21, 1.0], grasped=False)
+    plate["robot0_joint_pos"] = row["robot0_joint_pos"]
+    assert policy._elbow_pitch(plate) == 0.0, "a plate's rim is gripped at the table: never pitched"
+
+
+def test_held_bowl_goes_round_the_rack_and_is_let_go_where_nothing_hangs_over_the_stove() -> None:
+    policy = OraclePolicy()
+    p = policy.params
+    obstacles = _obstacles(*RACK_SLATS, STOVE, KNOB)
+    # Gripped from +y (the side the oracle picks here, next test): the hand's fingers close along y.
+    grip = np.array([-0.1925, -0.0225, 0.931])
+    moving = np.stack([np.array(SWAP_BOWL), policy._palm(grip, np.array([0.0, 1.0]))])
+    via, release, carry_z, release_z = policy._route(moving, np.array(COOK_REGION), obstacles, 0.0)
+    half = (SWAP_BOWL[3] - SWAP_BOWL[0]) / 2
+    assert release[0] - half >= RACK_SLATS[0][3] + p.route_margin - 1e-9, "not under the slats"
+    assert release[0] + half <= KNOB[0] - p.route_margin + 1e-9, "nor on the knobs"
+    assert COOK_REGION[0] < release[0] < COOK_REGION[3] and COOK_REGION[1] < release[1] < COOK_REGION[4]
+    assert release_z == STOVE[5] + p.pick.release_gap, "let go just above the stove's top, not the region's site"
+    assert np.allclose(via, [release[0], (SWAP_BOWL[1] + SWAP_BOWL[4]) / 2]), "out from beside the rack first"
+    assert carry_z >= COOK_REGION[5] + p.pick.carry_clearance
+    # Without obstacles: straight over the target's centre at the usual height.
+    via, release, carry_z, _ = policy._route(moving, np.array(COOK_REGION), _obstacles(), 0.0)
+    centre = (np.array(COOK_REGION[:2]) + COOK_REGION[3:5]) / 2
+    assert np.allclose(via, centre) and np.allclose(release, centre)
+    assert carry_z == COOK_REGION[5] + p.pick.carry_clearance
+
+
+def test_the_rim_is_gripped_where_the_hand_has_a_way_down() -> None:
+    policy = OraclePolicy()
+    obstacles = _obstacles(*RACK_SLATS, STOVE, KNOB)
+    facing_robot = policy._grasp_side(np.array(SWAP_BOWL), np.array(COOK_REGION))
+    assert facing_robot == (0, -1.0)
+    # From the robot's side the hand (21 cm along its fingers) would sit under the slats.
+    assert policy._clear_side(np.array(SWAP_BOWL), np.array(COOK_REGION), obstacles, facing_robot) == (1, 1.0)
+    assert policy._clear_side(np.array(SWAP_BOWL), np.array(COOK_REGION), _obstacles(), facing_robot) == facing_robot
+
+
+# LIBERO-Goal-T 0 (open the bottom drawer): the bar 3.8 cm over the table, drawers opening along +y.
+TABLE = [-0.8, -0.8, 0.85, 0.8, 0.8, 0.9]
+
+
+def _drawer_row(bar: list[float]) -> dict[str, np.ndarray]:
+    row = {k: v[0].astype(np.float64) for k, v in _obs("open", "articulate").items()}
+    row["task_object_bbox"] = np.array(bar)
+    row["task_object_pos"] = (row["task_object_bbox"][:3] + row["task_object_bbox"][3:]) / 2
+    row["task_target_pos"] = row["task_object_pos"] + [0.0, 0.15, 0.0]
+    row["task_motion_dir"] = np.array([0.0, 1.0, 0.0])
+    row["task_obstacle_bbox"] = _obstacles(TABLE)
+    return row
+
+
+def test_a_bar_too_low_to_grip_from_the_front_is_hooked_from_above() -> None:
+    policy = OraclePolicy()
+    low = _drawer_row([-0.002, -0.14, 0.938, 0.087, -0.125, 0.954])
+    middle = _drawer_row([-0.002, -0.14, 1.007, 0.087, -0.125, 1.024])
+    assert policy._front_blocked(low) and not policy._front_blocked(middle)
+    assert policy.act(low)[6] == 1.0, "hooked with the fingers closed"
+    assert policy.act(middle)[6] != 1.0, "a front grasp approaches with the fingers open"
+    # At the hook pose the hand drags the bar along the drawer's axis, pressing into it.
+    p = policy.params
+    approach = np.array([0.0, -np.sin(p.hook_tilt), -np.cos(p.hook_tilt)])
+    center = low["task_object_pos"]
+    tip = np.array([center[0], -0.14 - p.hook_gap, 0.954 - p.hook_depth])
+    low["robot0_eef_pos"] = tip - approach * p.hook_tip
+    finger = np.array([-1.0, 0.0, 0.0])
+    low["robot0_eef_quat"] = _xyzw(np.column_stack([np.cross(finger, approach), finger, approach]))
+    action = policy.act(low)
+    assert action[1] > 0.5 and action[2] < 0.0
+    low["task_obstacle_bbox"] = _obstacles()
+    assert not policy._front_blocked(low), "nothing known under the bar: gripped from the front"
+
+
+def _xyzw(mat: np.ndarray) -> np.ndarray:
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, mat.reshape(9))
+    return np.array([q[1], q[2], q[3], q[0]])

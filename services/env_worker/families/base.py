@@ -27,6 +27,7 @@ import numpy as np
 
 from services.common.specs import SpecError, TensorSpec
 from services.env_worker import rendering
+from services.env_worker.families.task_state import OBSTACLE_SLOTS
 from services.env_worker.milestones import milestone_specs
 from services.env_worker.signals import signal_specs
 
@@ -339,6 +340,14 @@ def manipulation_schema(
         TensorSpec(
             "task_grasped", "float32", (1,), privileged=True,
             description="1.0 while both fingers touch the task object, else 0.0",
+        ),
+        TensorSpec(
+            "task_obstacle_bbox", "float32", (OBSTACLE_SLOTS, 6), privileged=True,
+            description=(
+                "world boxes (min xyz, max xyz) of what stands around the task object and its target: other "
+                "objects whole, fixtures geom by geom, the robot and the moved object left out; nearest to the "
+                "way from object to target first, zero rows pad"
+            ),
         ),
         TensorSpec(
             "object_state", "float32", (object_state_dim,), privileged=True,

@@ -37,6 +37,11 @@ _GEOM_BOX, _GEOM_CYLINDER, _GEOM_CAPSULE = 6, 5, 3
 _JOINT_FREE, _JOINT_SLIDE, _JOINT_HINGE = 0, 2, 3
 #: Body name prefixes of the robot (arm and gripper) for collision intensity; the mount is static.
 ROBOT_PREFIXES = ("robot0_", "gripper0_")
+#: Rows of ``task_obstacle_bbox``, and how far (m) around the stage's object and target boxes, and
+#: below the lower of their bottoms (the table under them, not the floor), obstacles are reported.
+OBSTACLE_SLOTS = 32
+OBSTACLE_REACH = 0.15
+OBSTACLE_DEPTH = 0.05
 
 
 def _raw(env: Any) -> tuple[Any, Any]:
@@ -195,6 +200,72 @@ def articulation(model: Any, data: Any, name: str, joint_name: str, ranges: Mapp
     return Articulation(name, joint, int(model.jnt_qposadr[joint]), hinge, body, geoms, handle, targets)
 
 
+class Obstacles:
+    """World boxes of what stands around a stage's object and target (``task_obstacle_bbox``).
+
+    The collision geoms of everything but the robot: a free-moving object as one box (its geoms
+    together), a fixture geom by geom (a wine rack or a cabinet is far from a box), leaving out the
+    body the stage moves (the object, or the drawer behind a handle). A scripted controller plans
+    around them (services/policy_worker/models/oracle.py); the nearest to the line from the object
+    to the target come first and zero rows pad, so the tensor has one shape for every scene.
+    """
+
+    def __init__(self, model: Any, robot_prefixes: tuple[str, ...]) -> None:
+        import mujoco
+
+        free = {int(model.jnt_bodyid[j]) for j in range(model.njnt) if int(model.jnt_type[j]) == _JOINT_FREE}
+        groups: dict[tuple[str, int], list[int]] = {}
+        for g in range(model.ngeom):
+            if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+                continue
+            body = int(model.geom_bodyid[g])
+            if (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or "").startswith(robot_prefixes):
+                continue
+            root = body
+            while root and root not in free:
+                root = int(model.body_parentid[root])
+            groups.setdefault(("object", root) if root in free else ("geom", g), []).append(g)
+        members = list(groups.values())
+        self._geoms = np.array([g for ids in members for g in ids], dtype=np.int64)
+        self._starts = np.cumsum([0] + [len(ids) for ids in members[:-1]]).astype(np.int64)
+        self._bodies = np.array([int(model.geom_bodyid[ids[0]]) for ids in members], dtype=np.int64)
+        self._masks: dict[frozenset[int], np.ndarray] = {}
+
+    def boxes(self, model: Any, data: Any, moved: frozenset[int], obj: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """[OBSTACLE_SLOTS, 6] boxes near ``obj`` and ``target`` (world boxes), ``moved`` bodies left out."""
+        out = np.zeros((OBSTACLE_SLOTS, 6))
+        if not len(self._geoms):
+            return out
+        ids = self._geoms
+        local = model.geom_aabb[ids]
+        rot = data.geom_xmat[ids].reshape(-1, 3, 3)
+        center = np.einsum("kij,kj->ki", rot, local[:, :3]) + data.geom_xpos[ids]
+        half = np.einsum("kij,kj->ki", np.abs(rot), local[:, 3:])  # the rotated box's world extent
+        boxes = np.concatenate([np.minimum.reduceat(center - half, self._starts),
+                                np.maximum.reduceat(center + half, self._starts)], axis=1)
+        lo = np.minimum(obj[:2], target[:2]) - OBSTACLE_REACH
+        hi = np.maximum(obj[3:5], target[3:5]) + OBSTACLE_REACH
+        keep = ((boxes[:, 0] < hi[0]) & (boxes[:, 3] > lo[0]) & (boxes[:, 1] < hi[1]) & (boxes[:, 4] > lo[1])
+                & (boxes[:, 5] > min(obj[2], target[2]) - OBSTACLE_DEPTH) & self._others(moved))
+        boxes = boxes[keep]
+        # Distance of each box to the segment between the two box centres, nearest first.
+        a, b = (obj[:2] + obj[3:5]) / 2, (target[:2] + target[3:5]) / 2
+        ab = b - a
+        t = np.clip(((boxes[:, :2] + boxes[:, 3:5]) / 2 - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        nearest = a + t[:, None] * ab
+        gap = np.maximum(np.maximum(boxes[:, :2] - nearest, nearest - boxes[:, 3:5]), 0.0)
+        order = np.argsort(np.hypot(gap[:, 0], gap[:, 1]), kind="stable")[:OBSTACLE_SLOTS]
+        out[:len(order)] = boxes[order]
+        return out
+
+    def _others(self, moved: frozenset[int]) -> np.ndarray:
+        """Which groups do not belong to the ``moved`` bodies (cached per set)."""
+        mask = self._masks.get(moved)
+        if mask is None:
+            mask = self._masks[moved] = ~np.isin(self._bodies, list(moved))
+        return mask
+
+
 class TaskState:
     """Stage, milestones and signals of one environment; implements milestones.Probe."""
 
@@ -223,6 +294,8 @@ class TaskState:
         self._contacts = sig.Contacts.empty()
         self._sets: dict[str, frozenset[int]] = {}
         self._boxes: dict[str, np.ndarray] = {}  # boxes of the state being observed
+        self._obstacles = Obstacles(model, ROBOT_PREFIXES)
+        self._moved: dict[int, frozenset[int]] = {}
         self._started = False
         self._grasped = 0.0
         #: Set by a family whose goal has no target to point at (robosuite Lift): a fixed point.
@@ -313,6 +386,7 @@ class TaskState:
         out = {
             "task_object_pos": zeros3, "task_object_quat": np.zeros(4), "task_object_bbox": zeros6,
             "task_target_pos": zeros3, "task_target_bbox": zeros6, "task_motion_dir": zeros3,
+            "task_obstacle_bbox": np.zeros((OBSTACLE_SLOTS, 6)),
         }
         stage, template = self._current()
         if stage is None:
@@ -328,6 +402,7 @@ class TaskState:
                 task_object_pos=center, task_object_quat=np.array([q[1], q[2], q[3], q[0]]), task_object_bbox=box,
                 task_target_pos=goal, task_target_bbox=np.concatenate([goal, goal]), task_motion_dir=direction,
             )
+            out["task_obstacle_bbox"] = self._obstacle_boxes(model, data, art.body, box, out["task_target_bbox"])
             return out
         part = self.parts.get(stage.subject)
         if part is None:
@@ -349,7 +424,18 @@ class TaskState:
             )
             out.update(task_target_pos=goal, task_target_bbox=np.concatenate([goal, goal]),
                        task_motion_dir=np.array([0.0, 0.0, 1.0]))
+        if out["task_target_bbox"].any():
+            out["task_obstacle_bbox"] = self._obstacle_boxes(model, data, part.body_id, box, out["task_target_bbox"])
         return out
+
+    def _obstacle_boxes(self, model: Any, data: Any, body: int | None, obj: np.ndarray, target: np.ndarray
+                        ) -> np.ndarray:
+        """What stands around the stage's object and target, the moved body (and below it) left out."""
+        key = -1 if body is None else int(body)
+        moved = self._moved.get(key)
+        if moved is None:
+            moved = self._moved[key] = frozenset(subtree(model, body)) if body is not None else frozenset()
+        return self._obstacles.boxes(model, data, moved, obj, target)
 
     def _signals(self, model: Any, data: Any, action: np.ndarray | None, stage: Mapping[str, np.ndarray]
                  ) -> dict[str, np.ndarray]:

@@ -13,10 +13,21 @@ stage to a skill and never looks at the task's name or instruction:
   drawer, and slid out of the target's footprint before it is lifted; an object that fits in a
   deep dish (a bottle in a bowl) is lowered into it before it is let go, where dropped from above
   the rim it would tip over;
+* ``on``/``in`` around obstacles (``task_obstacle_bbox``: the boxes of what stands near the object
+  and the target): the held object and the hand above it are let go over the point of the target
+  nearest its centre with nothing in the way down, just above what the object will rest on there,
+  and carried there straight or by an L of two axis-aligned legs, raised over an obstacle only
+  where neither is free (LIBERO-Goal-S: the swapped stove sits under the wine rack's slats). A
+  wide object is gripped by another side of its rim where the hand has no way down from the side
+  facing the robot;
+* reaching low near the robot's base, the hand pitches toward the base as the elbow nears its
+  limit (folded there, the arm slides sideways instead of going where it is sent);
 * ``on`` a region drawn on the table: push the object there with the closed gripper;
 * ``turnon``/``turnoff`` (a knob): push the lever along its tangent with a finger;
 * ``open``/``close`` of a drawer: turn the hand to face the handle, grasp the handle bar and pull
-  or push it along the drawer's axis;
+  or push it along the drawer's axis; a bar so low that the palm of that grasp would reach into
+  the table under it (a bottom drawer) is hooked from above instead, the closed fingertips tilted
+  down behind it, and dragged by friction;
 * multi-predicate goals need no sequencing here: the env moves to the next stage when one holds
   (e.g. "open the top drawer and put the bowl inside" is open(drawer), then in(bowl, drawer)).
 
@@ -34,6 +45,7 @@ import numpy as np
 from services.common.rotations import quat_to_mat as _quat_to_mat
 from services.common.rotations import rotvec as _rotvec
 from services.common.specs import TensorSpec
+from services.env_worker.families.task_state import OBSTACLE_SLOTS
 from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
 from services.policy_worker.models.scripted import PickPlaceParams, ScriptedPickPlacePolicy
 
@@ -115,6 +127,21 @@ class OracleParams:
     bar_sag: float = 0.008
     #: Largest orientation error (rad) tolerated before moving in for a drawer grasp.
     bar_ori_tolerance: float = 0.15
+    #: A bar gripped from the front is pushed with a finger over its last centimetres (a stretched
+    #: arm's grasp slips there).
+    bar_finish: float = 0.02
+    #: Hook of a low bar (the palm of a front grasp would reach into the table): the closed fingers,
+    #: closing along the bar, tilted this far from straight down toward the cabinet, their tips
+    #: ``hook_tip`` beyond the grip site put ``hook_gap`` behind the bar and ``hook_depth`` below its
+    #: top, coming down from ``hook_hover`` back along the fingers; within ``hook_tolerance`` of
+    #: that pose the hand drags the bar along its axis, pressing ``hook_press`` into it (friction).
+    hook_tilt: float = 0.4
+    hook_gap: float = 0.006
+    hook_depth: float = 0.006
+    hook_tip: float = 0.012
+    hook_hover: float = 0.05
+    hook_tolerance: float = 0.025
+    hook_press: float = 0.05
     # -- an object under its target (an opened drawer slid over it) ------------------------------
     #: How far a fixture's walls and handle reach beyond the region it holds (its box grows by this).
     cover_margin: float = 0.02
@@ -133,6 +160,33 @@ class OracleParams:
     #: height below the rim; dropped from above the rim, a tall object tips over.
     sink_fit: float = 0.5
     sink_depth: float = 0.6
+    # -- reaching low near the base -----------------------------------------------------------------
+    #: The Panda's elbow (joint 4) folds to its limit when the hand, pointing down, reaches low near
+    #: the base, and the arm then slides sideways instead of going where it is sent. Within
+    #: ``elbow_margin`` of the limit the hand pitches toward the base, ``elbow_gain`` rad per rad,
+    #: at most ``max_pitch``: the wrist moves out and the elbow opens. A hand tilted more than
+    #: ``level_tolerance`` is levelled again once the elbow has room.
+    elbow_limit: float = -3.072
+    elbow_margin: float = 0.5
+    elbow_gain: float = 3.0
+    max_pitch: float = 0.5
+    level_tolerance: float = 0.1
+    # -- carrying around obstacles (task_obstacle_bbox) -----------------------------------------------
+    #: The hand's collision box above its grip site: half length along the finger axis (half width
+    #: across is ``hand_half_across``), and its bottom and top above the grip site.
+    palm_half_along: float = 0.105
+    palm_low: float = 0.024
+    palm_high: float = 0.126
+    #: Horizontal clearance kept from obstacles, and the clearance over an obstacle's top when the
+    #: carry height rises over it (by at most ``max_route_rise`` above the usual carry height).
+    route_margin: float = 0.01
+    route_clearance: float = 0.03
+    max_route_rise: float = 0.3
+    #: Obstacles whose top is at most this far above the target's top are what the object rests on.
+    support_tolerance: float = 0.02
+    #: Release points are searched on a grid of this step, this far inside the target's box.
+    release_step: float = 0.005
+    release_inset: float = 0.01
 
 
 class _SidedPick(ScriptedPickPlacePolicy):
@@ -146,14 +200,23 @@ class _SidedPick(ScriptedPickPlacePolicy):
     shift: float = 0.0
     #: How far below the target's top the held object's bottom is let go (0: just above it).
     sink: float = 0.0
+    #: Where a held object goes: (waypoint xy, release xy, carry height and release height of its
+    #: bottom); None: straight over the target's centre, ``carry_clearance`` above its top.
+    route: tuple[np.ndarray, np.ndarray, float, float] | None = None
 
     def _carry(self, center: np.ndarray, bottom: float, target_center: np.ndarray, target_top: float) -> np.ndarray:
         p = self.params
-        if self.sink <= 0.0 or np.linalg.norm(center[:2] - target_center[:2]) > p.carry_xy_tolerance:
-            return super()._carry(center, bottom, target_center, target_top)
-        # Over the dish: down inside it before letting go.
+        if self.route is None:
+            via = release_xy = target_center[:2]
+            carry_z = target_top + p.carry_clearance
+            release_z = target_top - self.sink if self.sink > 0.0 else target_top + p.release_gap
+        else:
+            via, release_xy, carry_z, release_z = self.route
         held = np.array([center[0], center[1], bottom])
-        release = np.array([target_center[0], target_center[1], target_top - self.sink])
+        if np.linalg.norm(center[:2] - release_xy) > p.carry_xy_tolerance:
+            goal = via if np.linalg.norm(center[:2] - via) > p.carry_xy_tolerance else release_xy
+            return self._move(held, self._climb_first(held, np.array([*goal, carry_z])), _CLOSE, p.carry_max_action)
+        release = np.array([*release_xy, release_z])
         if abs(bottom - release[2]) > p.z_tolerance or np.linalg.norm(center[:2] - release[:2]) > p.xy_tolerance:
             return self._move(held, release, _CLOSE, p.carry_max_action)
         return self._action(np.zeros(3), _OPEN)
@@ -198,6 +261,7 @@ class OraclePolicy:
             TensorSpec("robot0_eef_pos", "float32", (3,)),
             TensorSpec("robot0_eef_quat", "float32", (4,)),
             TensorSpec("robot0_gripper_qpos", "float32", (2,)),
+            TensorSpec("robot0_joint_pos", "float32", (7,)),
             TensorSpec("task_object_pos", "float32", (3,), privileged=True),
             TensorSpec("task_object_bbox", "float32", (6,), privileged=True),
             TensorSpec("task_target_pos", "float32", (3,), privileged=True),
@@ -206,6 +270,7 @@ class OraclePolicy:
             TensorSpec("task_stage", "float32", (len(STAGE_KINDS),), privileged=True),
             TensorSpec("task_template", "float32", (len(TEMPLATE_NAMES),), privileged=True),
             TensorSpec("task_motion_dir", "float32", (3,), privileged=True),
+            TensorSpec("task_obstacle_bbox", "float32", (OBSTACLE_SLOTS, 6), privileged=True),
         ]
 
     def infer(self, batch: dict[str, np.ndarray], instructions: list[str]) -> np.ndarray:
@@ -258,21 +323,54 @@ class OraclePolicy:
             cover = self._cover(obj, target)
             if held and cover is not None:
                 return self._slide_out(obs, cover)
+            self._pick.sink = self._sink(obs)
+            self._pick.route = None
+            obstacles = obs.get("task_obstacle_bbox")
+            if not held and obstacles is not None and cover is None:
+                axis, sign = self._clear_side(obj, target, obstacles, (axis, sign))
             self._pick.side = (axis, sign)
             self._pick.shift = self._rim_shift(obj, axis, cover if _overlap(obj, target) else None)
-            self._pick.sink = self._sink(obs)
+            if held and obstacles is not None:
+                moving = np.stack([obj, self._palm(obs["robot0_eef_pos"], hand[:, 1])])
+                self._pick.route = self._route(moving, target, obstacles, self._pick.sink)
             self._pick.params = self._axis_params[axis]
             action = self._pick._act(
                 obs["robot0_eef_pos"], obs["robot0_gripper_qpos"], obs["task_object_bbox"],
                 obs["task_target_bbox"], held,
             )
-            if held or (axis == 1 and not self._tilted(obs, 0.2)):
+            pitch = self._elbow_pitch(obs)
+            level = tilt < p.level_tolerance
+            if pitch <= 0.0 and level and (held or (axis == 1 and not self._tilted(obs, 0.2))):
                 return action  # keep the hand as it is (as the scripted policy does)
-            finger_axis = np.eye(3)[axis][:2]
-            action[3:6] = self._orient(obs, self._fingers_across(obs, finger_axis))
+            if held:  # level the hand (or pitch it) without turning what it holds
+                finger_axis = hand[:2, 1]
+            else:
+                finger_axis = np.eye(3)[axis][:2]
+            action[3:6] = self._orient(obs, self._pitched(self._fingers_across(obs, finger_axis), pitch))
             return action
         action[3:6] = self._orient(obs, DOWN)
         return action
+
+    def _elbow_pitch(self, obs: dict[str, np.ndarray]) -> float:
+        """How far to pitch the hand toward the base (see ``OracleParams.elbow_margin``); never for a
+        shallow dish, whose rim is gripped with the fingertips at the table (a pitched hand puts a
+        finger into it)."""
+        p = self.params
+        obj = obs["task_object_bbox"]
+        if obj.any() and obj[5] - obj[2] < p.shallow and self._dish(obj):
+            return 0.0
+        q = float(obs["robot0_joint_pos"][3])
+        return float(np.clip((p.elbow_limit + p.elbow_margin - q) * p.elbow_gain, 0.0, p.max_pitch))
+
+    def _pitched(self, frame: np.ndarray, pitch: float) -> np.ndarray:
+        """``frame`` with its approach axis turned by ``pitch`` toward the robot's base."""
+        if pitch <= 0.0:
+            return frame
+        toward = np.array([*self.params.robot_side, 0.0])
+        z = np.cos(pitch) * np.array([0.0, 0.0, -1.0]) + np.sin(pitch) * toward
+        y = frame[:, 1] - (frame[:, 1] @ z) * z
+        y /= np.linalg.norm(y)
+        return np.column_stack([np.cross(y, z), y, z])
 
     def _grasp_side(self, obj: np.ndarray, target: np.ndarray) -> tuple[int, float]:
         """Fingers close along y for an object narrow enough to grasp across; a wide one (a bowl, a
@@ -291,6 +389,27 @@ class OraclePolicy:
         toward = np.asarray(self.params.robot_side, dtype=np.float64)
         axis = int(np.argmax(np.abs(toward)))
         return axis, float(np.sign(toward[axis]))
+
+    def _clear_side(self, obj: np.ndarray, target: np.ndarray, obstacles: np.ndarray,
+                    default: tuple[int, float]) -> tuple[int, float]:
+        """The rim side to grip a wide object by so that the hand can let it go on the target: the
+        default side unless obstacles leave the hand no way down onto the target from it, then the
+        next side round the rim (the two beside it, then the far one)."""
+        p = self.params
+        half = (obj[3:5] - obj[:2]) / 2
+        if not obstacles.any() or min(half) <= p.pick.max_center_half_width or obj[5] - obj[2] < p.shallow:
+            return default
+        axis, sign = default
+        sides = [default, (1 - axis, 1.0), (1 - axis, -1.0), (axis, -sign)]
+        sink = self._pick.sink
+        for side in sides:
+            self._pick.side = side
+            self._pick.shift = 0.0
+            grip = self._pick._grasp_point(obj)
+            moving = np.stack([obj, self._palm(grip, np.eye(3)[side[0]])])
+            if self._route(moving, target, obstacles, sink) is not None:
+                return side
+        return default
 
     # -- an object under its target ---------------------------------------------------------------
 
@@ -329,6 +448,76 @@ class OraclePolicy:
         step[k % 2] = (exits[k] + p.cover_clearance) * (1.0 if k < 2 else -1.0)
         step[2] = max(cover[2] - p.cover_headroom - obj[5], 0.0)
         return self._move(obs["robot0_eef_pos"], obs["robot0_eef_pos"] + step, _CLOSE, p.pick.carry_max_action)
+
+    def _palm(self, grip: np.ndarray, finger_axis: np.ndarray) -> np.ndarray:
+        """World box of the hand above a grip site at ``grip`` whose fingers close along ``finger_axis`` (xy)."""
+        p = self.params
+        a = np.abs(finger_axis[:2]) / max(float(np.linalg.norm(finger_axis[:2])), 1e-9)
+        half = a * p.palm_half_along + a[::-1] * p.hand_half_across
+        return np.array([grip[0] - half[0], grip[1] - half[1], grip[2] + p.palm_low,
+                         grip[0] + half[0], grip[1] + half[1], grip[2] + p.palm_high])
+
+    def _route(self, moving: np.ndarray, target: np.ndarray, obstacles: np.ndarray, sink: float
+               ) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+        """Where to carry what the hand holds (``moving``: the object's box, then the palm's) so both clear
+        the obstacles: (waypoint, release point, carry height and release height of the object's
+        bottom); None if the hand has no way down onto the target.
+
+        The object is let go over the point of the target nearest its centre where nothing stands in
+        the way down, just above what it will rest on there, and carried there at the lowest height
+        (from the usual one up) where a straight line or an L of two axis-aligned legs is free, the
+        shortest of those.
+        """
+        obstacles = obstacles[np.any(obstacles != 0.0, axis=1)]
+        p, pick = self.params, self.params.pick
+        obj = moving[0]
+        ref = np.array([(obj[0] + obj[3]) / 2, (obj[1] + obj[4]) / 2, obj[2]])
+        low = float(target[5] - sink if sink > 0.0 else target[5] + pick.release_gap)
+        carry_z = float(target[5] + pick.carry_clearance)
+        release = self._release_point(obj, ref, target, obstacles, low, carry_z)
+        if release is None:
+            return None
+        release_z = low
+        if sink <= 0.0:  # just above what it rests on: the target, or a fixture's surface standing on it
+            foot = np.array([*(obj[:2] + release - ref[:2]), -np.inf, *(obj[3:5] + release - ref[:2]), np.inf])
+            flat = obstacles[obstacles[:, 5] <= target[5] + p.support_tolerance]
+            under = flat[_hits(foot[None], flat, 0.0)[0]]
+            release_z = float(max([target[5], *under[:, 5]])) + pick.release_gap
+        tops = np.sort(obstacles[:, 5][obstacles[:, 5] + p.route_clearance > carry_z]) + p.route_clearance
+        for z in (carry_z, *tops[tops <= carry_z + p.max_route_rise]):
+            best = None
+            for via in (release, np.array([release[0], ref[1]]), np.array([ref[0], release[1]])):
+                path = np.array([ref, [*ref[:2], z], [*via, z], [*release, z], [*release, release_z + p.support_tolerance]])
+                if _path_free(moving, ref, path, obstacles, p.route_margin):
+                    length = float(np.linalg.norm(via - ref[:2]) + np.linalg.norm(release - via))
+                    if best is None or length < best[0] - 1e-6:
+                        best = (length, via)
+            if best is not None:
+                return best[1], release, float(z), release_z
+        return None
+
+    def _release_point(self, obj: np.ndarray, ref: np.ndarray, target: np.ndarray, obstacles: np.ndarray,
+                       low: float, high: float) -> np.ndarray | None:
+        """The point of the target nearest its centre over which the object goes down from ``high`` to
+        ``low`` clear of the obstacles (what it is let go on does not count); None if there is none."""
+        p = self.params
+        above = obstacles[obstacles[:, 5] > low + p.support_tolerance]
+        column = obj[None].copy()
+        column[:, 5] += high - low
+        center = (target[:2] + target[3:5]) / 2
+        xs = np.arange(target[0] + p.release_inset, target[3] - p.release_inset + 1e-9, p.release_step)
+        ys = np.arange(target[1] + p.release_inset, target[4] - p.release_inset + 1e-9, p.release_step)
+        grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2) if len(xs) and len(ys) else np.zeros((0, 2))
+        points = np.concatenate([center[None], grid])
+        shifts = np.concatenate([points - ref[:2], np.full((len(points), 1), low - ref[2])], axis=1)
+        boxes = column[None] + np.tile(shifts, 2)[:, None]  # [point, box, 6]
+        blocked = _hits(boxes.reshape(-1, 6), above, p.route_margin).any(axis=1).reshape(len(points), -1).any(axis=1)
+        if not blocked[0]:
+            return center
+        free = points[~blocked]
+        if not len(free):
+            return None
+        return free[int(np.argmin(np.linalg.norm(free - center, axis=1)))]
 
     def _sink(self, obs: dict[str, np.ndarray]) -> float:
         """How deep into the target a held object is let go: inside a deep dish (a bowl) that it fits
@@ -450,7 +639,14 @@ class OraclePolicy:
         stage = obs["task_stage"]
         knob = stage[STAGE_KINDS.index("turnon")] > 0 or stage[STAGE_KINDS.index("turnoff")] > 0
         if not knob and abs(direction[2]) < 0.3 and self._is_bar(obs):
-            return self._pull_bar(obs)  # open/close: a drawer's bar
+            # open/close: a drawer's bar. Hooked from above where the hand cannot grip it from the
+            # front; gripped from the front, the last centimetres are pushed with a finger (a
+            # stretched arm's grasp slips there).
+            if self._front_blocked(obs):
+                return self._hook_bar(obs)
+            remaining = float(np.linalg.norm(obs["task_target_pos"] - obs["task_object_pos"]))
+            if remaining > self.params.bar_finish:
+                return self._pull_bar(obs)
         return self._finger_push(obs)  # turnon/turnoff: a knob's lever
 
     def _is_bar(self, obs: dict[str, np.ndarray]) -> bool:
@@ -459,7 +655,7 @@ class OraclePolicy:
         center = (handle[:3] + handle[3:]) / 2
         offset = obs["task_target_pos"] - center
         along = float(offset @ obs["task_motion_dir"])
-        return along > 0.02 and float(np.linalg.norm(offset - along * obs["task_motion_dir"])) < 1e-3
+        return along > 1e-3 and float(np.linalg.norm(offset - along * obs["task_motion_dir"])) < 1e-3
 
     def _finger_push(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Push the handle along its motion direction with the trailing finger of the open gripper."""
@@ -491,6 +687,58 @@ class OraclePolicy:
             else:
                 action = self._move(eef, site, _OPEN, p.handle_max_action)
         action[3:6] = self._orient(obs, DOWN)
+        return action
+
+    def _front_blocked(self, obs: dict[str, np.ndarray]) -> bool:
+        """The hand gripping the bar from the front (fingers closing vertically) would reach into the
+        surface the cabinet stands on: its palm is tall along the fingers, and a low drawer's bar sits
+        closer to the table than half of it."""
+        obstacles = obs.get("task_obstacle_bbox")
+        if obstacles is None:
+            return False
+        p = self.params
+        handle = obs["task_object_bbox"]
+        reach = p.hand_half_across
+        surface = (np.any(obstacles != 0.0, axis=1) & (obstacles[:, 5] < handle[2])
+                   & (obstacles[:, 0] <= handle[0] - reach) & (obstacles[:, 3] >= handle[3] + reach)
+                   & (obstacles[:, 1] <= handle[1] - reach) & (obstacles[:, 4] >= handle[4] + reach))
+        if not surface.any():
+            return False
+        lowest = (handle[2] + handle[5]) / 2 - p.bar_sag - p.palm_half_along
+        return bool(lowest < float(obstacles[surface, 5].max()))
+
+    def _hook_bar(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Hook the closed fingertips behind the bar from above, tilted, and drag it along the axis."""
+        p = self.params
+        eef = obs["robot0_eef_pos"]
+        handle, d, center, extent = _handle_frame(obs)
+        out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
+        up = np.array([0.0, 0.0, 1.0])
+        tilt = p.hook_tilt
+        approach = -up * np.cos(tilt) - out * np.sin(tilt)  # fingertips down and toward the cabinet
+        finger_axis = np.cross(up, out)  # closing along the bar
+        desired = np.column_stack([np.cross(finger_axis, approach), finger_axis, approach])
+        ori_error = float(np.linalg.norm(_rotvec(desired @ _quat_to_mat(obs["robot0_eef_quat"]).T)))
+        # The fingertip's end (hook_tip beyond the grip site along the approach) just behind the bar.
+        tip = center - out * (extent + p.hook_gap)
+        tip[2] = handle[5] - p.hook_depth
+        site = tip - approach * p.hook_tip
+        hover = site - approach * p.hook_hover
+        rel = eef - site
+        along = float(rel @ approach)  # negative: back along the fingers, above the hook pose
+        lateral = float(np.linalg.norm(rel - along * approach))
+        remaining = float(np.linalg.norm(obs["task_target_pos"] - center))
+        if abs(along) < p.hook_tolerance and lateral < p.hook_tolerance and ori_error < p.bar_ori_tolerance:
+            # Hooked: drag the bar along its axis, pressing into it.
+            goal = eef + out * (remaining + p.overshoot) - up * p.hook_press
+            action = self._move(eef, goal, _CLOSE, p.handle_max_action)
+        elif ori_error > p.bar_ori_tolerance or (lateral > p.hook_tolerance and along >= -0.01):
+            # Not turned yet, or off the line of approach near the bar: over the hover point first.
+            goal = hover if np.linalg.norm(eef - hover) > p.hook_tolerance else site
+            action = self._move(eef, goal, _CLOSE, p.handle_max_action)
+        else:
+            action = self._move(eef, site, _CLOSE, p.handle_max_action)  # down the line of approach
+        action[3:6] = self._orient(obs, desired)
         return action
 
     def _pull_bar(self, obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -534,6 +782,28 @@ class OraclePolicy:
 def _overlap(a: np.ndarray, b: np.ndarray) -> bool:
     """The two boxes overlap horizontally."""
     return bool(a[0] < b[3] and b[0] < a[3] and a[1] < b[4] and b[1] < a[4])
+
+
+def _hits(boxes: np.ndarray, obstacles: np.ndarray, margin: float) -> np.ndarray:
+    """[len(boxes), len(obstacles)]: which boxes come within ``margin`` (horizontally) of which obstacles."""
+    return ((obstacles[None, :, 0] - margin < boxes[:, None, 3]) & (obstacles[None, :, 3] + margin > boxes[:, None, 0])
+            & (obstacles[None, :, 1] - margin < boxes[:, None, 4]) & (obstacles[None, :, 4] + margin > boxes[:, None, 1])
+            & (obstacles[None, :, 2] < boxes[:, None, 5]) & (obstacles[None, :, 5] > boxes[:, None, 2]))
+
+
+def _path_free(moving: np.ndarray, ref: np.ndarray, path: np.ndarray, obstacles: np.ndarray, margin: float) -> bool:
+    """``moving`` (boxes at reference point ``ref``) carried through the points of ``path`` (straight
+    legs, sampled every centimetre) hits no obstacle, except one it touches from the start until it
+    has left it (it may move away from what it stands next to)."""
+    samples = [path[0]]
+    for a, b in zip(path[:-1], path[1:]):
+        n = int(np.ceil(np.linalg.norm(b - a) / 0.01))
+        samples += [a + (b - a) * (k / n) for k in range(1, n + 1)] if n else []
+    hit = np.zeros((len(samples), len(obstacles)), dtype=bool)
+    for k, point in enumerate(samples):
+        hit[k] = _hits(moving + np.tile(point - ref, 2), obstacles, margin).any(axis=0)
+    left = np.maximum.accumulate(~hit, axis=0)
+    return not bool((hit & left).any())
 
 
 def _handle_frame(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
