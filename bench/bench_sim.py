@@ -17,9 +17,11 @@ create     Slot create and reset against a fresh environment build: a cold proce
            template; a slot from the group's pool; resets with a held seed, a new seed (private
            model rewritten in place), a seed another slot holds (model shared).
 resetphases Where one LIBERO-Goal slot reset (fast path) spends its time: robosuite's env.reset(),
-           the settle steps, the rest (init state, task state, observation), for keys the env
-           has not settled before (settle steps replayed) and for a repeated key (its settled
-           snapshot restored, families/settled.py). Not in the default run.
+           the settle steps, the rest (init state, task state, observation), for keys the group
+           has not settled before (settle steps replayed), for a repeated key (its settled
+           snapshot restored, families/settled.py) and for a key's first reset on a second slot
+           after the first settled it (the group's snapshot restored on another env). Not in the
+           default run.
 parallel   Aggregate steps/s of N LIBERO-Goal slots stepping at once on this machine: one thread
            stepping them in turn, N threads in one process (the env worker's model: one slot
            thread per slot, one shared model), N processes with one slot each -- for the fast
@@ -82,16 +84,19 @@ def _family(name: str, config: dict[str, Any]) -> Any:
 
 def bench_reset_phases(repeats: int) -> dict[str, dict[str, float]]:
     """Median ms per phase of a LIBERO slot reset, each phase timed by wrapping the call: a key the
-    env has not settled yet (settle steps replayed) and a repeated key (settled snapshot restored)."""
+    group has not settled yet (settle steps replayed), a repeated key (settled snapshot restored)
+    and a key's first reset on a second slot after the first slot settled it (the group's shared
+    snapshot restored on another env)."""
     from services.env_worker.families import settled
     from services.env_worker.families.base import ResetSpec
     from services.env_worker.fast_step import make_stepper
 
     family = _family("libero", LIBERO)
-    slot = family.init()
+    slot, other = family.init(), family.init()
     slot.reset(ResetSpec(TASK, seed=0, init_state_index=0))
+    other.reset(ResetSpec(TASK, seed=0, init_state_index=0))
     env = slot._env
-    stepper = make_stepper(env, True)
+    steppers = [make_stepper(s._env, True) for s in (slot, other)]
     spent: dict[str, float] = defaultdict(float)
 
     def timed(owner: Any, attr: str, phase: str) -> None:
@@ -106,37 +111,44 @@ def bench_reset_phases(repeats: int) -> dict[str, dict[str, float]]:
 
         setattr(owner, attr, wrapper)
 
-    timed(env, "reset", "env.reset")
-    timed(stepper, "step", "settle steps")
+    for s, stepper in zip((slot, other), steppers, strict=True):
+        timed(s._env, "reset", "env.reset")
+        timed(stepper, "step", "settle steps")
     rounds = max(repeats, 5) * 2
-    # More distinct init states than an env keeps snapshots of: every replayed reset misses.
-    fresh_keys = [1 + (k % (settled.CAPACITY + 2)) for k in range(rounds)]
     out: dict[str, dict[str, float]] = {}
     try:
-        for mode, inits in (("replayed", fresh_keys), ("restored", [0] * rounds)):
+        for mode in ("replayed", "restored", "shared"):
             rows: dict[str, list[float]] = defaultdict(list)
-            for k in inits:
+            for k in range(rounds):
+                spec = ResetSpec(TASK, seed=0, init_state_index=1 + k % 40)
+                if mode != "restored":
+                    settled.forget(env)  # the group's snapshots (both slots share them) dropped
+                if mode != "replayed":
+                    slot.reset(spec)  # settled on the first slot
                 spent.clear()
-                spec = ResetSpec(TASK, seed=0, init_state_index=k)
-                total = _timed(lambda spec=spec: slot.reset(spec))[0] * 1000
+                target = other if mode == "shared" else slot
+                total = _timed(lambda spec=spec, target=target: target.reset(spec))[0] * 1000
                 rows["total"].append(total)
                 for phase in ("env.reset", "settle steps"):
                     rows[phase].append(spent[phase] * 1000)
                 rows["rest"].append(total - 1000 * (spent["env.reset"] + spent["settle steps"]))
             out[mode] = {phase: _median(v) for phase, v in rows.items()}
     finally:
-        del env.reset, stepper.step  # the instance attributes set above
-        slot.close()
+        for s, stepper in zip((slot, other), steppers, strict=True):
+            del s._env.reset, stepper.step  # the instance attributes set above
+            s.close()
         family.close()
     return out
 
 
 def print_reset_phases(res: dict[str, dict[str, float]]) -> None:
     print(f"\n== reset phases: one LIBERO-Goal slot, fast path (median ms; load average {os.getloadavg()[0]:.1f})")
-    print(f"{'phase':14} {'replayed':>10} {'restored':>10}")
+    modes = ("replayed", "restored", "shared")
+    print(f"{'phase':14}" + "".join(f"{m:>10}" for m in modes))
     for phase in ("env.reset", "settle steps", "rest", "total"):
-        print(f"{phase:14} {res['replayed'][phase]:10.1f} {res['restored'][phase]:10.1f}")
-    print(f"replayed / restored: {res['replayed']['total'] / res['restored']['total']:.1f}x")
+        print(f"{phase:14}" + "".join(f"{res[m][phase]:10.1f}" for m in modes))
+    print(f"replayed / restored: {res['replayed']['total'] / res['restored']['total']:.1f}x, "
+          f"replayed / shared (another slot's key): {res['replayed']['total'] / res['shared']['total']:.1f}x")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -358,7 +370,7 @@ def bench_create(repeats: int) -> dict[str, Any]:
         samples["libero: reset, new seed (private model rewritten)"].append(t)
         stalls["libero: reset, new seed (private model rewritten)"].append(ticker.max_gap_ms)
         t, _ = _timed(lambda: b.reset(ResetSpec(task="", seed=200 + r)))
-        samples["libero: reset, seed another slot holds (shared)"].append(t)
+        samples["libero: reset, the key another slot just reset (model and settled state shared)"].append(t)
         # b shares a's model now; a new seed for b needs a model of its own (recycled or copied)
         with _Ticker() as ticker:
             t, _ = _timed(lambda: b.reset(ResetSpec(task="", seed=300 + r)))

@@ -338,8 +338,47 @@ def test_repeated_reset_restores_the_settled_state_bit_for_bit(libero, libero_sl
         del stepper.step
     other = libero.init()
     try:
-        replayed, replayed_states = episode(other)  # a fresh env: settle steps replayed
+        settled.forget(other._env)  # the group's snapshots dropped: settle steps replayed
+        replayed, replayed_states = episode(other)
     finally:
         other.close()
+    assert np.array_equal(restored_states, replayed_states)
+    _assert_same(restored, replayed)
+
+
+def test_a_key_settled_on_one_slot_restores_on_another_bit_for_bit(libero) -> None:
+    """The group's slots share settled snapshots: the first reset of a key on a second env restores
+    what the first env settled, and its episode is the replayed one, qpos and qvel included."""
+    from services.env_worker.families import settled
+    from services.env_worker.fast_step import make_stepper
+
+    spec = ResetSpec(CREAM_CHEESE, seed=8, init_state_index=12)
+    actions = np.random.default_rng(4).uniform(-1, 1, size=(40, 7)).astype(np.float32)
+    first, second = libero.init(), libero.init()
+    assert first._env is not second._env
+
+    def episode(slot) -> tuple[list[dict[str, np.ndarray]], np.ndarray]:
+        obs = [slot.reset(spec)[0]]
+        data = slot._env.sim.data
+        states = [np.concatenate([data.qpos, data.qvel])]
+        for a in actions:
+            obs.append(slot.step(a, render=False).observation)
+            states.append(np.concatenate([data.qpos, data.qvel]))
+        return obs, np.array(states)
+
+    try:
+        settled.forget(first._env)
+        replayed, replayed_states = episode(first)
+        stepper = make_stepper(second._env, True)
+        calls = []
+        stepper.step = lambda action, _step=stepper.step: calls.append(1) or _step(action)
+        try:
+            restored, restored_states = episode(second)
+        finally:
+            del stepper.step
+        assert len(calls) == len(actions), "the second env replayed the settle steps instead of restoring"
+    finally:
+        first.close()
+        second.close()
     assert np.array_equal(restored_states, replayed_states)
     _assert_same(restored, replayed)

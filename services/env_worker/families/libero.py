@@ -4,8 +4,8 @@ An episode is keyed by (suite, task, init state index, seed): the init state fix
 object, and the seed fixes what LIBERO still samples on reset (fixture placement, a few mm to cm).
 After the init state is applied the family runs ``settle_steps`` no-op actions with the gripper
 open, as LIBERO's evaluation does, so objects dropped into place have come to rest; those steps
-do not count as episode steps. An env that settled a key before restores that settled state
-instead of stepping again (families/settled.py), bit for bit the same.
+do not count as episode steps. A key settled before on any env of the group restores that settled
+state instead of stepping again (families/settled.py), bit for bit the same.
 
 Privileged task state comes from the BDDL goal (families/task_state.py): the goal is expanded into
 ordered stages and milestones (services/env_worker/milestones.py); the stage being worked on names
@@ -153,6 +153,8 @@ class LiberoFamily(PooledGroup, EnvFamily):
         self._lock = threading.Lock()
         self._models = CompiledModels(mutable=_FIXTURE_POSE_FIELDS)
         self._pool: EnvPool[Any] = EnvPool()
+        #: Settled states of the group's keys, restored on whichever env resets the key next.
+        self.settled = settled.Store()
         self._schema = manipulation_schema(
             self.config["cameras"], self.config["camera_size"], PROPRIO_DIM, self.config["object_state_dim"]
         )
@@ -318,6 +320,7 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
             self._family.park(self._task, self._env)
             self._env = None
         self._env = self._family.acquire(index)
+        settled.attach(self._env, self._family.settled)
         self._task = index
         self._state = task_state.for_libero(self._env)
 
@@ -345,7 +348,7 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
         key = (index, spec.init_state_index, spec.seed, self._family.config["settle_steps"])
         start = settled.start_state(env) if isinstance(stepper, FastStepper) else None
         snapshot = settled.lookup(env, key, start) if start is not None else None
-        if snapshot is not None:  # this key settled on this env before: restore, do not replay
+        if snapshot is not None:  # this key settled in the group before: restore, do not replay
             obs = snapshot.restore(env)
         else:
             env._post_process()

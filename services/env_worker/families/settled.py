@@ -1,9 +1,9 @@
-"""Post-settle snapshots of a LIBERO environment, per episode key: a repeated reset restores them.
+"""Post-settle snapshots of LIBERO environments, per episode key: a repeated reset restores them.
 
 A LIBERO reset is robosuite's ``env.reset()``, the benchmark's init state, then ``settle_steps``
 no-op actions so the objects come to rest (docs/simulation.md: the settle steps are 83% of a
 reset). Those steps are a pure function of the state they start from, so the second reset of a
-key on the same environment does not need to replay them: it keeps ``env.reset()`` and the init
+key in a sharing group (on any of its environments) does not need to replay them: it keeps ``env.reset()`` and the init
 state (they choose the fixture model and rebuild the controller), checks that the simulation
 stands exactly where it stood when the snapshot was taken, and copies the settled state back:
 
@@ -15,16 +15,20 @@ stands exactly where it stood when the snapshot was taken, and copies the settle
 * the settle steps' last observation.
 
 Only environments stepped by the fast path's :class:`~services.env_worker.fast_step.FastStepper`
-are snapshotted: robosuite's own ``env.step`` also fills per-robot history buffers. A snapshot is
-used only when the environment holds the same ``MjModel`` object with the same fixture poses and
-the same ``MjData`` object, and the freshly set init state equals the one it was taken from, bit
-for bit; anything else replays the settle steps. ``tests/unit/test_families.py`` checks that a
-restored reset steps the same trajectory as a replayed one.
+are snapshotted: robosuite's own ``env.step`` also fills per-robot history buffers. The snapshots
+of a group live in one :class:`Store` that its environments share (the group's family attaches it),
+so a key settled on one slot restores on another. A snapshot is used only when the environment
+holds the same ``MjModel`` object, or one of the same template (services/env_worker/sharing.py:
+they differ at most in fixture poses), with the same fixture poses, and the freshly set init state
+equals the one it was taken from, bit for bit; anything else replays the settle steps.
+``tests/unit/test_families.py`` checks that a restored reset steps the same trajectory as a
+replayed one, on the same environment and on another.
 """
 
 from __future__ import annotations
 
 import copy
+import threading
 from collections import OrderedDict
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
@@ -32,9 +36,11 @@ from typing import Any
 
 import numpy as np
 
-#: Snapshots kept per environment (one holds about 1.5 MB resident on a LIBERO-Goal scene: MuJoCo
-#: copies only the used part of MjData); the least recently used goes first.
-CAPACITY = 16
+from services.env_worker.sharing import interchangeable
+
+#: Snapshots kept per store (one holds about 1.5 MB resident on a LIBERO-Goal scene: MuJoCo copies
+#: only the used part of MjData); the least recently used goes first.
+CAPACITY = 32
 _ATTR = "_zetta_settled"
 #: Env attributes a step changes, and the observable fields a sample changes.
 _ENV_FIELDS = ("timestep", "cur_time", "done", "_obs_cache")
@@ -77,7 +83,7 @@ class Snapshot:
         """The environment stands where it stood when this snapshot's settle steps began."""
         model = env.sim.model._model
         return (
-            model is self.model
+            (model is self.model or interchangeable(model, self.model))
             and np.array_equal(model.body_pos, self.body_pos)
             and np.array_equal(model.body_quat, self.body_quat)
             and np.array_equal(start, self.start)
@@ -129,29 +135,60 @@ def capture(env: Any, start: np.ndarray, observation: Mapping[str, Any]) -> Snap
     )
 
 
+class Store:
+    """The settled snapshots of a sharing group's environments, by key, least recently used first out."""
+
+    def __init__(self, capacity: int = CAPACITY) -> None:
+        self.capacity = capacity
+        self._snaps: OrderedDict[Hashable, Snapshot] = OrderedDict()
+        self._lock = threading.Lock()  # slots reset on their own threads
+
+    def get(self, key: Hashable) -> Snapshot | None:
+        with self._lock:
+            snap = self._snaps.get(key)
+            if snap is not None:
+                self._snaps.move_to_end(key)
+            return snap
+
+    def put(self, key: Hashable, snap: Snapshot) -> None:
+        with self._lock:
+            self._snaps[key] = snap
+            self._snaps.move_to_end(key)
+            while len(self._snaps) > self.capacity:
+                self._snaps.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._snaps.clear()
+
+    def __len__(self) -> int:
+        return len(self._snaps)
+
+
+def attach(env: Any, store: Store) -> None:
+    """Make ``env`` keep and restore its snapshots in ``store`` (its group's)."""
+    setattr(env, _ATTR, store)
+
+
 def forget(env: Any) -> None:
-    """Drop every snapshot of ``env``: its next reset of any key replays the settle steps (what a
-    benchmark that repeats keys does to measure first resets)."""
-    vars(env).pop(_ATTR, None)
+    """Drop every snapshot ``env`` could restore (its group's store): its next reset of any key
+    replays the settle steps (what a benchmark that repeats keys does to measure first resets)."""
+    found: Store | None = getattr(env, _ATTR, None)
+    if found is not None:
+        found.clear()
 
 
 def lookup(env: Any, key: Hashable, start: np.ndarray) -> Snapshot | None:
-    """The snapshot of ``key`` on ``env`` if it applies to the state ``env`` stands in now."""
-    cache: OrderedDict[Hashable, Snapshot] | None = getattr(env, _ATTR, None)
-    snap = cache.get(key) if cache is not None else None
-    if snap is None or not snap.matches(env, start):
-        return None
-    cache.move_to_end(key)
-    return snap
+    """The snapshot of ``key`` in ``env``'s store if it applies to the state ``env`` stands in now."""
+    found: Store | None = getattr(env, _ATTR, None)
+    snap = found.get(key) if found is not None else None
+    return snap if snap is not None and snap.matches(env, start) else None
 
 
 def store(env: Any, key: Hashable, snap: Snapshot) -> None:
-    """Keep ``snap`` for ``key`` on ``env``, dropping the least recently used beyond :data:`CAPACITY`."""
-    cache: OrderedDict[Hashable, Snapshot] | None = getattr(env, _ATTR, None)
-    if cache is None:
-        cache = OrderedDict()
-        setattr(env, _ATTR, cache)
-    cache[key] = snap
-    cache.move_to_end(key)
-    while len(cache) > CAPACITY:
-        cache.popitem(last=False)
+    """Keep ``snap`` for ``key`` in ``env``'s store (a store of its own if no group attached one)."""
+    found: Store | None = getattr(env, _ATTR, None)
+    if found is None:
+        found = Store()
+        attach(env, found)
+    found.put(key, snap)
