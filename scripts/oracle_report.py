@@ -6,7 +6,7 @@ per suite, so a task switch only swaps warm envs). Every episode is judged by th
 success predicate; failures are reported with their first missing milestone m*.
 
     .venv/bin/python scripts/oracle_report.py --suites libero_goal libero_goal_swap libero_goal_task \
-        --inits 50 --processes 2 --out docs/oracle.md
+        --inits 50 --processes 1 --out docs/oracle.md
 
 Per-episode results are appended to a JSONL file as they finish (``--jsonl``), so a long run that
 is cut short still leaves its data; ``--resume`` skips episodes already in that file.
@@ -75,9 +75,12 @@ def write_report(records: list[dict], out: Path, command: str, planned: int) -> 
         "per goal predicate of the task's BDDL goal (pick-and-place for on/in, push for on a table region,",
         "finger push of the lever for turnon/turnoff, grasp-and-pull of the handle bar for open/close), reading",
         "only privileged state; no task names or per-task constants. Pick-and-place slides an object out from",
-        "under its target first (an opened drawer over the bowl it must receive) and lowers an object into a",
-        "deep dish it fits in (a bottle into a bowl) instead of dropping it. Success is the environment's own",
-        "`_check_success()`. Episodes use LIBERO's step budget (300 for LIBERO-Goal) and seed 0.",
+        "under its target first (an opened drawer over the bowl it must receive), lowers an object into a",
+        "deep dish it fits in (a bottle into a bowl), and carries around the obstacles the scene reports",
+        "(`task_obstacle_bbox`), letting go where nothing hangs over the target; the hand pitches toward the",
+        "base when the elbow nears its limit; a drawer bar too low to grip from the front is hooked from",
+        "above. Success is the environment's own `_check_success()`. Episodes use LIBERO's step budget (300",
+        "for LIBERO-Goal) and seed 0.",
         "",
         f"Episodes run: {len(records)} of {planned} planned.",
         "",

@@ -56,9 +56,9 @@ class DataRecipe:
     execute_steps: int = 1
     #: Run only the first N episodes of :meth:`episodes` (0: all); a deterministic cut, unlike a time budget.
     max_episodes: int = 0
-    #: DAgger student's flow start ("zero" or "gaussian", see ZettaVLAPolicy); the shipped
-    #: checkpoint's DAgger round ran with "zero", the serving default before sampling was adopted.
-    student_noise: str = "zero"
+    #: DAgger student's flow start ("zero" or "gaussian", see ZettaVLAPolicy): "gaussian", as
+    #: served, so the student visits the states it will visit when deployed.
+    student_noise: str = "gaussian"
 
     def episodes(self) -> list[tuple[int, int, int]]:
         """(task, seed, init_state_index), interleaved over tasks so a time budget cuts evenly."""
@@ -85,7 +85,7 @@ def _worker(recipe: dict, jobs, results) -> None:
         from services.policy_worker.vla.policy import ZettaVLAPolicy
 
         torch.set_num_threads(1)
-        student = ZettaVLAPolicy(recipe["dagger_checkpoint"], noise=recipe.get("student_noise", "zero"))
+        student = ZettaVLAPolicy(recipe["dagger_checkpoint"], noise=recipe["student_noise"])
     names = [n for n, _ in STATE_INPUTS]
     student_names = [sp.name for sp in student.input_specs()] if student is not None else []
     execute = max(1, int(recipe.get("execute_steps", 1)))
@@ -221,6 +221,8 @@ def main(argv=None) -> int:
     p.add_argument("--action-noise", type=float, default=0.0, help="DART noise std on the executed arm action")
     p.add_argument("--execute-steps", type=int, default=1, help="DAgger: student actions run per chunk")
     p.add_argument("--max-episodes", type=int, default=0, help="run only the first N episodes of the list")
+    p.add_argument("--student-noise", default=DataRecipe.student_noise, choices=("gaussian", "zero"),
+                   help="DAgger: the student's flow start")
     a = p.parse_args(argv)
     teacher = a.teacher or default_teacher()
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
@@ -229,7 +231,7 @@ def main(argv=None) -> int:
                         image_size=a.image_size, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
                         action_noise=a.action_noise, execute_steps=a.execute_steps,
-                        max_episodes=a.max_episodes)
+                        max_episodes=a.max_episodes, student_noise=a.student_noise)
     print(json.dumps(collect(recipe, a.out), indent=2))
     return 0
 

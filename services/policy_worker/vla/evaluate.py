@@ -27,11 +27,16 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     from services.env_worker.families.base import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
-    fam_cls = get_family("libero")
-    family = fam_cls(fam_cls.canonical_config({"suite": suite}))
-    slot = family.init()
     policy = load_model(model)
-    names = [s.name for s in policy.input_specs()]
+    specs = policy.input_specs()
+    names = [s.name for s in specs]
+    config = {"suite": suite}
+    cameras = [s for s in specs if s.name.endswith("_image")]
+    if cameras:  # an image policy: the env renders the cameras it reads, at its size
+        config.update(cameras=[s.name[: -len("_image")] for s in cameras], camera_size=cameras[0].shape[0])
+    fam_cls = get_family("libero")
+    family = fam_cls(fam_cls.canonical_config(config))
+    slot = family.init()
     while True:
         job = jobs.get()
         if job is None:
@@ -145,7 +150,7 @@ def main(argv=None) -> int:
     if a.quantize:
         env["ZETTA_VLA_QUANTIZE"] = a.quantize
     if a.checkpoint:
-        env["ZETTA_VLA_CHECKPOINT"] = a.checkpoint
+        env["ZETTA_VLA_IMAGE_CHECKPOINT" if a.model == "zetta-vla-image" else "ZETTA_VLA_CHECKPOINT"] = a.checkpoint
     tasks = [int(t) for t in a.tasks.split(",")]
     seeds = list(range(a.seed_offset, a.seed_offset + a.seeds))
     rows = []
