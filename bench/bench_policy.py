@@ -1,12 +1,14 @@
 """The Zetta VLA served three ways, side by side in one run.
 
-1. throughput of the monolithic policy at batch 1/4/16/32, float vs W8A8 (prefix MLP int8);
+1. throughput of the monolithic policy at batch 1/4/16/32, float vs W8A8 (prefix MLP int8), and
+   the served (TorchScript-traced) action expert vs the eager module, CPU time per call, interleaved;
 2. split (VLM and action expert in two processes, prefix through shared memory) vs monolithic
    (one process, one scheduler): latency and goodput under a 200 ms SLO at several open-loop
    Poisson loads (requests/s); goodput = answers within the SLO per second;
 3. the scheduler's max_queue_delay and max_batch at the highest load (how the defaults were chosen).
 
     python bench/bench_policy.py [--duration 3] [--loads 50,200,400,800] [--checkpoint DIR]
+    python bench/bench_policy.py --only trace       # traced vs eager stage 2 alone (20 s)
 """
 
 from __future__ import annotations
@@ -45,6 +47,37 @@ def throughput(policy, instruction: str, batches=(1, 4, 16, 32), seconds: float 
         dt = (time.perf_counter() - t0) / calls
         out[b] = (dt * 1000, b / dt)
     return out
+
+
+def traced_vs_eager(checkpoint: str | None, instruction: str, batches=(1, 4, 16, 32), calls: int = 200) -> dict:
+    """Median thread CPU ms of one full inference (both stages), the served traced action expert
+    against the eager one, calls interleaved so both see the same machine; the outputs must match."""
+    from services.policy_worker.vla.policy import ZettaVLAPolicy
+
+    kw = {"checkpoint": checkpoint} if checkpoint else {}
+    pols = {"eager": ZettaVLAPolicy(trace=False, **kw), "traced": ZettaVLAPolicy(**kw)}
+    out = {}
+    for b in batches:
+        rows = sample_inputs(b, seed=b)
+        batch = {n: np.stack([r[n] for r in rows]) for n, _ in STATE_INPUTS}
+        texts = [instruction] * b
+        answers = {k: p.infer(batch, texts) for k, p in pols.items()}
+        assert np.array_equal(answers["eager"], answers["traced"]), "the trace changed the actions"
+        cpu: dict[str, list[float]] = {k: [] for k in pols}
+        for _ in range(calls):
+            for k, p in pols.items():
+                t = time.thread_time()
+                p.infer(batch, texts)
+                cpu[k].append(time.thread_time() - t)
+        out[b] = {k: float(np.median(v)) * 1000 for k, v in cpu.items()}
+    return out
+
+
+def print_traced(res: dict) -> None:
+    print("\n== action expert: traced (served) vs eager, one inference, median thread CPU ms, interleaved ==")
+    print(f"{'batch':>5} | {'eager ms':>9} {'traced ms':>9} | {'speedup':>7}")
+    for b, r in res.items():
+        print(f"{b:>5} | {r['eager']:>9.2f} {r['traced']:>9.2f} | {r['eager'] / r['traced']:>6.2f}x")
 
 
 async def open_loop(server, instruction: str, rate: float, duration: float, seed: int = 1) -> dict:
@@ -134,7 +167,9 @@ def main() -> None:
     p.add_argument("--max-batch", type=int, default=32)
     p.add_argument("--delay-ms", type=float, default=5.0)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--only", default="throughput,trace,serving", help="comma-separated sections to run")
     args = p.parse_args()
+    only = set(args.only.split(","))
     import torch
 
     torch.set_num_threads(args.threads)
@@ -144,6 +179,12 @@ def main() -> None:
     q = ZettaVLAPolicy(args.checkpoint, quantize="w8a8") if args.checkpoint else ZettaVLAPolicy(quantize="w8a8")
     instruction = sorted(flt.text.cache)[0]
     print(f"checkpoint: {flt.cfg.to_dict()}  torch threads {torch.get_num_threads()}  quantized: {q.quantized}")
+    if "trace" in only:
+        print_traced(traced_vs_eager(args.checkpoint, instruction))
+    if "throughput" not in only:
+        if "serving" in only:
+            asyncio.run(serving(args, instruction))
+        return
     tf, tq = throughput(flt, instruction), throughput(q, instruction)
     print("\n== throughput, monolithic, float vs W8A8 (prefix MLP) ==")
     print(f"{'batch':>5} | {'float ms':>9} {'float rows/s':>12} | {'w8a8 ms':>9} {'w8a8 rows/s':>12} | {'speedup':>7}")
@@ -163,7 +204,8 @@ def main() -> None:
             k += 1
         print(f"stage 1 (VLM) only, batch 32, {name}: {(time.perf_counter() - t0) / k * 1000:.2f} ms")
     del _t
-    asyncio.run(serving(args, instruction))
+    if "serving" in only:
+        asyncio.run(serving(args, instruction))
 
 
 if __name__ == "__main__":

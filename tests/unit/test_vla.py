@@ -246,6 +246,25 @@ def test_batch_invariant_mode_makes_rows_independent_of_their_batch(instruction,
     assert np.array_equal(together, alone) and np.array_equal(three, together[2:5])
 
 
+@pytest.mark.parametrize("noise", ["gaussian", "zero"])
+def test_traced_action_expert_serves_the_eager_numbers_at_every_batch_size(instruction, noise) -> None:
+    """The served stage 2 is a TorchScript trace made at batch 1; it gives the eager module's
+    actions bit for bit at other batch sizes too (the flow time is built from the rows)."""
+    traced, eager = ZettaVLAPolicy(noise=noise), ZettaVLAPolicy(noise=noise, trace=False)
+    assert isinstance(traced._expert, torch.jit.ScriptModule) and eager._expert is eager.model.expert
+    for b in (1, 3, 8):
+        batch = _batch(b, seed=b)
+        assert np.array_equal(traced.infer(batch, [instruction] * b), eager.infer(batch, [instruction] * b))
+
+
+def test_traced_action_expert_with_a_quantized_expert(instruction) -> None:
+    q = ZettaVLAPolicy(quantize="expert.blocks")
+    assert q.quantized == ["expert.blocks"]
+    ref = ZettaVLAPolicy(quantize="expert.blocks", trace=False)
+    batch = _batch(4)
+    assert np.array_equal(q.infer(batch, [instruction] * 4), ref.infer(batch, [instruction] * 4))
+
+
 def test_gripper_snaps_to_the_three_commands_the_gripper_knows() -> None:
     from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 

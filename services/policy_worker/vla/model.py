@@ -159,12 +159,13 @@ class ActionExpert(nn.Module):
         """Integrate from x0 (zeros unless ``noise`` is given) to an action chunk [B, chunk, 7]."""
         cfg = self.cfg
         steps = steps or cfg.flow_steps
-        b = len(prefix)
-        x = noise if noise is not None else torch.zeros(b, cfg.chunk, cfg.action_dim, device=prefix.device)
+        x = noise if noise is not None else torch.zeros(len(prefix), cfg.chunk, cfg.action_dim, device=prefix.device)
         cond = self.condition(prefix)
         dt = 1.0 / steps
         for k in range(steps):
-            t = torch.full((b,), k * dt, device=prefix.device)
+            # The flow time is built from x's own rows, not a Python batch size, so a trace of this
+            # method (policy.py serves one) holds for every batch size.
+            t = torch.full_like(x[:, 0, 0], k * dt)
             x = x + dt * self.velocity(x, t, cond)
         return x
 
@@ -197,8 +198,11 @@ class ZettaVLA(nn.Module):
         the teacher uses to keep a partial aperture), so three levels lose nothing and remove the
         flicker of a regressed value near a mode boundary.
         """
-        a = self.expert(prefix, noise) * self.action_std + self.action_mean
-        a = a.clamp(-1.0, 1.0)
+        return self.to_env_units(self.expert(prefix, noise))
+
+    def to_env_units(self, chunk: torch.Tensor) -> torch.Tensor:
+        """Stage 2's normalized chunk in environment units, clamped, gripper snapped (see :meth:`act`)."""
+        a = (chunk * self.action_std + self.action_mean).clamp(-1.0, 1.0)
         g = a[..., -1]
         a[..., -1] = torch.where(g.abs() < GRIPPER_DEADZONE, torch.zeros_like(g), torch.sign(g))
         return a

@@ -56,7 +56,7 @@ class ZettaVLAPolicy:
 
     def __init__(self, checkpoint: str | os.PathLike = STATE_CHECKPOINT, name: str = "zetta-vla-state",
                  quantize: str = "", device: str = "cpu", threads: int = 0, noise: str | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, trace: bool = True) -> None:
         if threads:
             torch.set_num_threads(threads)
         #: Flow-matching start x0: "gaussian" samples it, seeded per request from the request's own
@@ -88,6 +88,19 @@ class ZettaVLAPolicy:
             from services.policy_worker.vla.quant import quantize_modules
 
             self.quantized = quantize_modules(self.model, quantize.split(","))
+        #: Stage 2 as served: the action expert traced once (TorchScript), so the flow's few hundred
+        #: small tensor ops run without Python's per-module dispatch, most of a CPU call's cost at
+        #: the batches rollouts make (bench/bench_policy.py prints traced vs eager). The trace runs
+        #: the same kernels in the same order: the same numbers, for every batch size.
+        self.traced = trace
+        self._expert = self._trace_expert() if trace else self.model.expert
+
+    @torch.no_grad()
+    def _trace_expert(self) -> torch.nn.Module:
+        cfg = self.cfg
+        prefix = torch.zeros(1, cfg.prefix_tokens, cfg.width, device=self.device)
+        noise = torch.zeros(1, cfg.chunk, cfg.action_dim, device=self.device)
+        return torch.jit.trace(self.model.expert, (prefix, noise), check_trace=False)
 
     def keep_stage(self, stage: int) -> None:
         """Free the other stage's weights: a split-serving process runs one stage and should hold
@@ -95,6 +108,8 @@ class ZettaVLAPolicy:
         if stage not in (1, 2):
             raise ValueError(f"stage must be 1 (VLM) or 2 (action expert), got {stage}")
         del self.model._modules["expert" if stage == 1 else "encoder"]
+        if stage == 1:
+            self._expert = None
 
     def input_specs(self) -> list[TensorSpec]:
         return state_specs(self.cfg.image_size)
@@ -147,9 +162,15 @@ class ZettaVLAPolicy:
         """Stage 2 on the model's device: actions [B, chunk, 7], x0 drawn from ``seeds``
         (:meth:`request_seeds`); row by row when :attr:`batch_invariant`."""
         if self.batch_invariant and len(prefix) > 1:
-            return torch.cat([self.model.act(prefix[i:i + 1].to(self.device), self.start_noise(seeds[i:i + 1]))
-                              for i in range(len(prefix))])
-        return self.model.act(prefix.to(self.device), self.start_noise(seeds))
+            return torch.cat([self._act(prefix[i:i + 1], seeds[i:i + 1]) for i in range(len(prefix))])
+        return self._act(prefix, seeds)
+
+    def _act(self, prefix: torch.Tensor, seeds: np.ndarray) -> torch.Tensor:
+        prefix = prefix.to(self.device)
+        noise = self.start_noise(seeds)
+        if noise is None:  # the mean start, given explicitly: the trace takes x0 as an input
+            noise = torch.zeros(len(prefix), self.cfg.chunk, self.cfg.action_dim, device=self.device)
+        return self.model.to_env_units(self._expert(prefix, noise))
 
     def act_batch(self, prefix: torch.Tensor, seeds: np.ndarray) -> np.ndarray:
         """Stage 2 as float32 numpy."""
