@@ -15,6 +15,10 @@ def spec_to_wire(spec: TensorSpec, out: types_pb2.TensorSpec | None = None) -> t
     msg.shape[:] = spec.shape
     msg.privileged = spec.privileged
     msg.description = spec.description
+    if spec.low is not None:
+        msg.low = spec.low
+    if spec.high is not None:
+        msg.high = spec.high
     return msg
 
 
@@ -26,4 +30,6 @@ def spec_from_wire(msg: types_pb2.TensorSpec) -> TensorSpec:
         shape=tuple(int(d) for d in msg.shape),
         privileged=msg.privileged,
         description=msg.description,
+        low=msg.low if msg.HasField("low") else None,
+        high=msg.high if msg.HasField("high") else None,
     )

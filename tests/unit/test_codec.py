@@ -171,6 +171,17 @@ def test_spec_round_trip(dtype: str) -> None:
     assert (back.privileged, back.description) == (True, "chunk of actions")
 
 
+def test_spec_bounds_round_trip_and_stay_unset_when_unbounded() -> None:
+    """Bounds travel with the spec (a gymnasium action space is built from them); an unbounded
+    spec leaves them unset rather than sending 0."""
+    bounded = TensorSpec(name="action", dtype="float32", shape=(7,), low=-1.0, high=1.0)
+    back = spec_from_wire(types_pb2.TensorSpec.FromString(spec_to_wire(bounded).SerializeToString()))
+    assert (back.low, back.high) == (-1.0, 1.0)
+    msg = spec_to_wire(TensorSpec(name="x", dtype="float32", shape=(3,)))
+    assert not msg.HasField("low") and not msg.HasField("high")
+    assert spec_from_wire(msg).low is None and spec_from_wire(msg).high is None
+
+
 def test_spec_from_wire_rejects_unknown_dtype() -> None:
     """A spec with an unset dtype is malformed, not silently float32."""
     with pytest.raises(TensorDecodeError):

@@ -1,0 +1,148 @@
+"""Gymnasium environments over Zetta sessions, for code that expects ``gymnasium.Env``.
+
+``ZettaEnv`` holds one session of any env family the stack serves (LIBERO, LIBERO-PRO, robosuite,
+RoboCasa where installed) and speaks the Gymnasium API: ``reset(seed=..., options=...)`` starts an
+episode (the options carry the rest of the episode key: task, init state, instruction, video,
+harness), ``step(action)`` executes one action (or a chunk) on the env worker. The spaces come
+from the session's own schema, so an observation always lies in ``observation_space``; privileged
+(simulation-only) signals can be left out with ``include_privileged=False``.
+
+    env = gymnasium.make("zetta/Session-v0", gateway="127.0.0.1:50051", env_family="libero",
+                         env_config={"suite": "libero_goal", "task": "put_the_cream_cheese_in_the_bowl"})
+    obs, info = env.reset(seed=0, options={"init_state_index": 3})
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+
+Vectorized training wants one session per sub-environment: ``gymnasium.vector.AsyncVectorEnv`` over
+``ZettaEnv`` factories works, and ``zetta.SessionGroup`` batches many sessions in one RPC when a
+vector env's per-env calls are the bottleneck.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from zetta.client import ResetResult, StepResult
+from zetta.codec import dtype_from_wire
+from zetta.sync import SyncGateway
+from zetta.v1 import types_pb2
+
+#: ``reset(options=...)`` keys and the SessionGroup.reset arguments they set.
+RESET_OPTIONS = ("task", "init_state_index", "instruction", "record_video", "harness", "harness_dir")
+
+
+def space_for(dtype: np.dtype | str, shape: Iterable[int], low: float | None = None,
+              high: float | None = None) -> spaces.Space:
+    """The Gymnasium space of one tensor spec: bool tensors are MultiBinary, numbers a Box over the
+    declared bounds or, where the spec declares none, the dtype's own range."""
+    dtype = np.dtype(dtype)
+    shape = tuple(int(d) for d in shape)
+    if any(d < 0 for d in shape):
+        raise ValueError(f"shape {list(shape)} has a free dimension: a Gymnasium space needs fixed ones")
+    if dtype == np.bool_:
+        return spaces.MultiBinary(shape)
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        lo, hi = (info.min if low is None else low), (info.max if high is None else high)
+    else:
+        lo, hi = (-np.inf if low is None else low), (np.inf if high is None else high)
+    return spaces.Box(low=lo, high=hi, shape=shape, dtype=dtype)
+
+
+def spec_space(spec: types_pb2.TensorSpec) -> spaces.Space:
+    """:func:`space_for` of a wire-format TensorSpec."""
+    return space_for(dtype_from_wire(spec.dtype).newbyteorder("="), spec.shape,
+                     spec.low if spec.HasField("low") else None, spec.high if spec.HasField("high") else None)
+
+
+class ZettaEnv(gymnasium.Env):
+    """One session of ``env_family`` through the gateway at ``gateway``, as a ``gymnasium.Env``.
+
+    ``gateway`` is an address (a private blocking connection is opened and closed with the env) or
+    a :class:`zetta.SyncGateway` to share. The session's lease renews in the background until
+    :meth:`close`. ``seed=None`` on reset draws the episode seed from the env's own generator, so
+    a seeded first reset makes the whole sequence of episodes reproducible.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, gateway: str | SyncGateway, env_family: str, env_config: Mapping[str, Any] | None = None,
+                 task: str | int = "", include_privileged: bool = True, render_mode: str | None = None,
+                 render_camera: str = "") -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self._owns_gateway = isinstance(gateway, str)
+        self._gateway = SyncGateway(gateway) if isinstance(gateway, str) else gateway
+        try:
+            self._sessions = self._gateway.create_sessions(env_family=env_family, n=1, env_config=env_config)
+        except BaseException:
+            if self._owns_gateway:
+                self._gateway.close()
+            raise
+        info = self._sessions.infos[0]
+        self.session_id: str = info.session_id
+        self.task = str(task)
+        self.render_mode = render_mode
+        self._keys = [s.name for s in info.observation_schema if include_privileged or not s.privileged]
+        self.observation_space = spaces.Dict({s.name: spec_space(s) for s in info.observation_schema
+                                              if s.name in self._keys})
+        self.action_space = spec_space(info.action_spec)
+        images = [k for k in self._keys if k.endswith("_image")]
+        self._camera = render_camera or (images[0] if images else "")
+        if render_mode == "rgb_array" and self._camera not in images:
+            self.close()
+            raise ValueError(f"render_mode='rgb_array' needs a camera in the session's observations "
+                             f"({images or 'none: set env_config cameras'}), got {self._camera or 'none'!r}")
+        self._last: dict[str, np.ndarray] = {}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - set(RESET_OPTIONS)
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; known: {list(RESET_OPTIONS)}")
+        options.setdefault("task", self.task)
+        episode_seed = seed if seed is not None else int(self.np_random.integers(2**31))
+        result: ResetResult = self._sessions.reset(seed=episode_seed, **options)[0]
+        info = {"episode_id": result.episode_id, "instruction": result.instruction, "max_steps": result.max_steps,
+                "milestone_names": list(result.milestone_names), "seed": episode_seed}
+        if result.video_path:
+            info["video_path"] = result.video_path
+        return self._observation(result.observation), info
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        action = np.asarray(action, dtype=self.action_space.dtype)
+        result: StepResult = self._sessions.action_step([action])[0]
+        info: dict[str, Any] = {**result.info, "success": result.success, "episode_step": result.episode_step,
+                                "milestones_reached": list(result.milestones_reached),
+                                "first_missing_milestone": result.first_missing_milestone,
+                                "executed_actions": result.executed_actions}
+        if result.video_path:
+            info["video_path"] = result.video_path
+        return self._observation(result.observation), result.reward, result.terminated, result.truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """The latest frame of ``render_camera`` (the first camera by default) with rgb_array."""
+        if self.render_mode != "rgb_array":
+            return None
+        return self._last.get(self._camera)
+
+    def close(self) -> None:
+        sessions, self._sessions = getattr(self, "_sessions", None), None
+        if sessions is not None:
+            sessions.close()
+        if self._owns_gateway and self._gateway is not None:
+            self._gateway.close()
+            self._gateway = None
+
+    def _observation(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        self._last = {k: raw[k] for k in self._keys}
+        return dict(self._last)
+
+
+gymnasium.register(id="zetta/Session-v0", entry_point="zetta.gym:ZettaEnv")
