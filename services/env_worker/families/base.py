@@ -94,6 +94,7 @@ _LOCK = threading.Lock()
 #: Built-in families by module, imported on first use so heavy simulators load only when needed.
 _BUILTIN_MODULES: dict[str, str] = {
     "libero": "services.env_worker.families.libero",
+    "robocasa": "services.env_worker.families.robocasa",
     "robosuite": "services.env_worker.families.robosuite_lift",
 }
 
