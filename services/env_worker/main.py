@@ -47,9 +47,11 @@ async def main() -> None:
     log.info("episode videos: %s", cfg.video_dir or "off (ZETTA_VIDEO_DIR unset)")
     for name in cfg.families:
         try:
-            get_family(name)
+            reason = get_family(name).unavailable_reason()
         except UnknownFamilyError as exc:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES: {exc}") from None
+        if reason:
+            raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES names {name!r}, which cannot run here: {reason}")
     if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
         threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families)

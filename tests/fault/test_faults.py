@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from services.env_worker.families.robocasa import unavailable_reason as robocasa_unavailable_reason
 from tests.conftest import HEARTBEAT_TIMEOUT_MS, LIFT, eventually, free_slots
 from zetta import Gateway, SessionGroup, ZettaError
 from zetta.codec import encode
@@ -413,12 +414,16 @@ def _run_service(module: str, env: dict[str, str]) -> subprocess.CompletedProces
          "ZETTA_REDIS_URL"),
         ("services.env_worker.main", {"ZETTA_GATEWAY_ADDRESS": "127.0.0.1:1", "ZETTA_ENV_FAMILIES": "nope",
                                       "ZETTA_ENV_WORKER_PORT": "0"}, "ZETTA_ENV_FAMILIES"),
+        pytest.param("services.env_worker.main", {"ZETTA_GATEWAY_ADDRESS": "127.0.0.1:1",
+                                                  "ZETTA_ENV_FAMILIES": "libero,robocasa", "ZETTA_ENV_WORKER_PORT": "0"},
+                     "ZETTA_ENV_FAMILIES", marks=pytest.mark.skipif(not robocasa_unavailable_reason(),
+                                                                    reason="RoboCasa is installed here")),
         ("services.policy_worker.main", {"ZETTA_MODELS": "nope", "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_MODELS"),
         ("services.policy_worker.main", {"ZETTA_MODELS": "zetta-vla-state", "ZETTA_VLA_DEVICE": "tpu",
                                          "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_VLA_DEVICE"),
     ],
     ids=["gateway-no-redis-url", "gateway-timeout-below-interval", "gateway-redis-unreachable",
-         "env-worker-unknown-family", "policy-worker-unknown-model", "policy-worker-bad-vla-device"],
+         "env-worker-unknown-family", "env-worker-family-not-installed", "policy-worker-unknown-model", "policy-worker-bad-vla-device"],
 )
 def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, str], variable: str) -> None:
     """A misconfigured service stops at once with a message naming the variable, not a traceback."""
@@ -428,3 +433,5 @@ def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, s
     assert "Traceback" not in proc.stderr
     if "nope" in env.values():
         assert "'nope'" in proc.stderr, "the bad value is quoted back"
+    if "robocasa" in env.get("ZETTA_ENV_FAMILIES", ""):
+        assert "robocasa" in proc.stderr and "install" in proc.stderr, "what is missing and how to install it"

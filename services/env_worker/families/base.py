@@ -221,6 +221,12 @@ class EnvFamily(ABC):
     def init(self) -> Slot:
         """Build a slot, reusing the group's compiled models and warm environments."""
 
+    @classmethod
+    def unavailable_reason(cls) -> str:
+        """Why this family cannot run on this machine ("" when it can): a worker configured to
+        serve it refuses to start with this message instead of refusing every request later."""
+        return ""
+
     @abstractmethod
     def sharing_stats(self) -> dict[str, int]:
         """Counters of the sharing mechanism (builds, reuses), for metrics and tests."""

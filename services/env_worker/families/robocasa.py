@@ -313,6 +313,10 @@ class RobocasaFamily(EnvFamily):
         "reflections", "max_steps", "object_state_dim", "control_freq",
     )
 
+    @classmethod
+    def unavailable_reason(cls) -> str:
+        return unavailable_reason()
+
     def __init__(self, config: Mapping[str, Any]) -> None:
         super().__init__(config)
         self._pool: EnvPool[Any] = EnvPool()
