@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,11 @@ class ZettaVLAPolicy:
         cfg = self.cfg
         prefix = torch.zeros(1, cfg.prefix_tokens, cfg.width, device=self.device)
         noise = torch.zeros(1, cfg.chunk, cfg.action_dim, device=self.device)
-        return torch.jit.trace(self.model.expert, (prefix, noise), check_trace=False)
+        # torch 2.13 marks TorchScript deprecated in favour of torch.compile, whose CPU backend
+        # compiles C++ for tens of seconds at start-up; the pinned torch still runs traces.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            return torch.jit.trace(self.model.expert, (prefix, noise), check_trace=False)
 
     def keep_stage(self, stage: int) -> None:
         """Free the other stage's weights: a split-serving process runs one stage and should hold
