@@ -38,6 +38,7 @@ COMPATIBLE: dict[str, tuple[str, ...]] = {
     "held_near_target": ("lower_until_supported_then_release", "fine_alignment"),
     "held_stalled_transport": ("fine_alignment+lower_until_supported_then_release", "fine_alignment"),
     "blocked_motion": ("retreat_until_separated", "fine_alignment", "release_and_restage"),
+    "articulation_stalled": ("operate_handle",),
 }
 #: Predicates that state a healthy condition (used by re-entry and gating), never failure evidence.
 NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})

@@ -21,8 +21,13 @@ POLICY = "policy"
 
 
 def milestone_kind(name: str) -> str:
-    """``grasped(cream_cheese_1)`` -> ``grasped``."""
-    return name.split("(", 1)[0]
+    """``grasped(cream_cheese_1)`` -> ``grasped``; a handle's ``reached(r.handle)`` and
+    ``contact(r.handle)`` -> ``reached_handle`` and ``contact_handle``, the kinds
+    services/env_worker/milestones.py gives them (an articulation stage's, not an object's)."""
+    kind, _, rest = name.partition("(")
+    if rest.split("#", 1)[0].endswith(".handle)") and kind in ("reached", "contact"):
+        return f"{kind}_handle"
+    return kind
 
 
 def _matches(spec: str, names: Iterable[str]) -> bool:

@@ -42,8 +42,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.handles import DOWN, HandleParams, HandleSkill
+from services.common.handles import aperture as _aperture_command
 from services.common.rotations import quat_to_mat as _quat_to_mat
-from services.common.rotations import rotvec as _rotvec
 from services.common.specs import TensorSpec
 from services.env_worker.families.task_state import OBSTACLE_SLOTS
 from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
@@ -53,22 +54,19 @@ _OPEN, _CLOSE = -1.0, 1.0
 _PICK_PLACE, _PUSH, _HANDLE = "pick_place", "push", "handle"
 
 
-#: The hand pointing down with the fingers closing along world y (robosuite's default Panda pose),
-#: as the rotation of the ``robot0_eef_quat`` frame.
-DOWN = np.diag([1.0, -1.0, -1.0])
-
 
 @dataclass(frozen=True)
-class OracleParams:
-    """Generic offsets (metres) and gains of the skills; none is specific to a task."""
+class OracleParams(HandleParams):
+    """Generic offsets (metres) and gains of the skills; none is specific to a task.
+
+    The orientation gains, the handle (knob lever, drawer bar) offsets and the hand's size are
+    :class:`~services.common.handles.HandleParams`', shared with the harness library's articulation
+    recoveries.
+    """
 
     #: Pick-and-place offsets: the scripted ones, carrying higher (a region site can sit under a
     #: fixture's knobs and rims, so its box top understates what the object must clear).
     pick: PickPlaceParams = PickPlaceParams(carry_clearance=0.1)
-    #: Orientation gain: fraction of the rotation error corrected per step, and the largest
-    #: rotation action (OSC scales 1.0 to 0.5 rad).
-    rot_gain: float = 1.0
-    max_rot_action: float = 0.6
     #: Pick-and-place first turns the hand down, backing off this far, when it is turned more than this.
     reorient_angle: float = 0.6
     reorient_backoff: float = 0.05
@@ -100,54 +98,11 @@ class OracleParams:
     rim_overlap: float = 0.016
     #: Height above the object's top for moving over to the push start.
     push_hover: float = 0.04
-    # -- handle (knob lever, drawer bar) ---------------------------------------------------------
-    #: Offset of each open finger from the grip site along the finger axis, and a finger's half
-    #: thickness along it.
-    finger_offset: float = 0.042
-    finger_half: float = 0.006
-    handle_gap: float = 0.006
-    #: Grip site height relative to the handle's centre for a finger push (the pads span -5..+12 mm).
-    handle_dz: float = -0.002
-    handle_hover: float = 0.05
-    handle_tolerance: float = 0.008
-    handle_max_action: float = 1.0
-    #: Extra travel commanded past the handle's goal position.
-    overshoot: float = 0.05
-    #: Drawer grasp: how far the grip site sits behind the bar's front face, the approach standoff
-    #: in front of it, and the finger gap below which the bar counts as held.
-    bar_depth: float = 0.004
-    bar_standoff: float = 0.06
-    bar_closed_gap: float = 0.012
-    #: Finger gap while approaching a bar: wide enough for the bar, narrow enough that the lower
-    #: finger stays above the table under a low drawer.
-    bar_open_gap: float = 0.045
-    #: Alignment tolerance across the pull (OSC sags about a centimetre with the hand sideways).
-    bar_tolerance: float = 0.02
-    #: The sideways hand sags under OSC: aim this much below the bar.
-    bar_sag: float = 0.008
-    #: Largest orientation error (rad) tolerated before moving in for a drawer grasp.
-    bar_ori_tolerance: float = 0.15
-    #: A bar gripped from the front is pushed with a finger over its last centimetres (a stretched
-    #: arm's grasp slips there).
-    bar_finish: float = 0.02
-    #: Hook of a low bar (the palm of a front grasp would reach into the table): the closed fingers,
-    #: closing along the bar, tilted this far from straight down toward the cabinet, their tips
-    #: ``hook_tip`` beyond the grip site put ``hook_gap`` behind the bar and ``hook_depth`` below its
-    #: top, coming down from ``hook_hover`` back along the fingers; within ``hook_tolerance`` of
-    #: that pose the hand drags the bar along its axis, pressing ``hook_press`` into it (friction).
-    hook_tilt: float = 0.4
-    hook_gap: float = 0.006
-    hook_depth: float = 0.006
-    hook_tip: float = 0.012
-    hook_hover: float = 0.05
-    hook_tolerance: float = 0.025
-    hook_press: float = 0.05
     # -- an object under its target (an opened drawer slid over it) ------------------------------
     #: How far a fixture's walls and handle reach beyond the region it holds (its box grows by this).
     cover_margin: float = 0.02
-    #: Half width of the hand across its finger axis: a rim grasp shifts along the rim until the
-    #: hand clears the cover, by at most ``cover_shift`` of the rim's radius.
-    hand_half_across: float = 0.035
+    #: A rim grasp shifts along the rim until the hand clears the cover (``hand_half_across``, the
+    #: hand's half width across its finger axis), by at most ``cover_shift`` of the rim's radius.
     cover_shift: float = 0.6
     #: A grasped covered object is slid out of the cover's footprint this far beyond its edge,
     #: raised on the way until its top is ``cover_headroom`` below the target's bottom (never
@@ -172,9 +127,9 @@ class OracleParams:
     max_pitch: float = 0.5
     level_tolerance: float = 0.1
     # -- carrying around obstacles (task_obstacle_bbox) -----------------------------------------------
-    #: The hand's collision box above its grip site: half length along the finger axis (half width
-    #: across is ``hand_half_across``), and its bottom and top above the grip site.
-    palm_half_along: float = 0.105
+    #: The hand's collision box above its grip site: half length along the finger axis
+    #: (``palm_half_along``; half width across is ``hand_half_across``), and its bottom and top above
+    #: the grip site.
     palm_low: float = 0.024
     palm_high: float = 0.126
     #: Horizontal clearance kept from obstacles, and the clearance over an obstacle's top when the
@@ -253,6 +208,8 @@ class OraclePolicy:
         self._axis_params = {
             axis: dataclasses.replace(self.params.pick, finger_axis=axis) for axis in (0, 1)
         }
+        #: The handle motions (services/common/handles.py), with the pick-and-place translation gains.
+        self._handles = HandleSkill(self.params, self._move, STAGE_KINDS)
 
     @staticmethod
     def input_specs() -> list[TensorSpec]:
@@ -545,20 +502,11 @@ class OraclePolicy:
     # -- primitives ------------------------------------------------------------------------------
 
     def _orient(self, obs: dict[str, np.ndarray], desired: np.ndarray) -> np.ndarray:
-        p = self.params
-        current = _quat_to_mat(obs["robot0_eef_quat"])
-        error = _rotvec(desired @ current.T)
-        return np.clip(error * p.rot_gain / 0.5, -p.max_rot_action, p.max_rot_action)
+        return self._handles.orient(obs, desired)
 
     @staticmethod
     def _aperture(gap: float, wanted: float) -> float:
-        """Gripper command that brings the finger gap to ``wanted`` and holds it there (the gripper
-        integrates its command, so 0 keeps the current opening)."""
-        if gap > wanted + 0.004:
-            return 0.5
-        if gap < wanted - 0.004:
-            return -0.5
-        return 0.0
+        return _aperture_command(gap, wanted)
 
     def _move(self, eef: np.ndarray, goal: np.ndarray, gripper: float, limit: float) -> np.ndarray:
         return self._pick._move(eef, goal, gripper, limit)
@@ -631,152 +579,25 @@ class OraclePolicy:
     # -- handles: knob levers and drawer bars ------------------------------------------------------
 
     def _handle(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        direction = obs["task_motion_dir"]
-        if not direction.any():
-            action = self._pick._action(np.zeros(3), _OPEN)
-            action[3:6] = self._orient(obs, DOWN)
-            return action
-        stage = obs["task_stage"]
-        knob = stage[STAGE_KINDS.index("turnon")] > 0 or stage[STAGE_KINDS.index("turnoff")] > 0
-        if not knob and abs(direction[2]) < 0.3 and self._is_bar(obs):
-            # open/close: a drawer's bar. Hooked from above where the hand cannot grip it from the
-            # front; gripped from the front, the last centimetres are pushed with a finger (a
-            # stretched arm's grasp slips there).
-            if self._front_blocked(obs):
-                return self._hook_bar(obs)
-            remaining = float(np.linalg.norm(obs["task_target_pos"] - obs["task_object_pos"]))
-            if remaining > self.params.bar_finish:
-                return self._pull_bar(obs)
-        return self._finger_push(obs)  # turnon/turnoff: a knob's lever
+        """open/close a drawer's bar (gripped from the front and pulled, or hooked from above where
+        the palm would reach into the table; the last centimetres pushed with a finger), turnon/
+        turnoff a knob's lever (pushed along its tangent with a finger): services/common/handles.py."""
+        return self._handles.act(obs)
 
     def _is_bar(self, obs: dict[str, np.ndarray]) -> bool:
-        """A handle that moves along a straight line sideways: the handle goal lies on the motion line."""
-        handle = obs["task_object_bbox"]
-        center = (handle[:3] + handle[3:]) / 2
-        offset = obs["task_target_pos"] - center
-        along = float(offset @ obs["task_motion_dir"])
-        return along > 1e-3 and float(np.linalg.norm(offset - along * obs["task_motion_dir"])) < 1e-3
+        return self._handles.is_bar(obs)
 
     def _finger_push(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Push the handle along its motion direction with the trailing finger of the open gripper."""
-        p = self.params
-        eef = obs["robot0_eef_pos"]
-        handle, d, center, extent = _handle_frame(obs)
-        # Finger on the -d side of the handle; the grip site sits finger_offset further along y.
-        finger = center - d * (extent + p.finger_half + p.handle_gap)
-        side = np.sign(d[1]) if abs(d[1]) > 1e-6 else 1.0
-        site = finger + np.array([0.0, side * p.finger_offset, 0.0])
-        site[2] = center[2] + p.handle_dz
-        remaining = float(np.linalg.norm(obs["task_target_pos"] - center))
-        rel = eef - site
-        along = float(rel @ d)
-        lateral = rel - along * d
-        lateral[2] = 0.0
-        engaged = (-p.handle_tolerance <= along <= 0.03 and np.linalg.norm(lateral) < p.handle_tolerance
-                   and abs(eef[2] - site[2]) < 0.015)
-        if engaged:
-            goal = site + d * (remaining + p.overshoot)
-            action = self._move(eef, goal, _OPEN, p.handle_max_action)
-        else:
-            hover = handle[5] + p.handle_hover
-            if np.linalg.norm((eef - site)[:2]) > p.handle_tolerance:
-                if eef[2] < hover - 0.02:
-                    action = self._move(eef, np.array([eef[0], eef[1], hover]), _OPEN, p.handle_max_action)
-                else:
-                    action = self._move(eef, np.array([site[0], site[1], hover]), _OPEN, p.handle_max_action)
-            else:
-                action = self._move(eef, site, _OPEN, p.handle_max_action)
-        action[3:6] = self._orient(obs, DOWN)
-        return action
+        return self._handles.finger_push(obs)
 
     def _front_blocked(self, obs: dict[str, np.ndarray]) -> bool:
-        """The hand gripping the bar from the front (fingers closing vertically) would reach into the
-        surface the cabinet stands on: its palm is tall along the fingers, and a low drawer's bar sits
-        closer to the table than half of it."""
-        obstacles = obs.get("task_obstacle_bbox")
-        if obstacles is None:
-            return False
-        p = self.params
-        handle = obs["task_object_bbox"]
-        reach = p.hand_half_across
-        surface = (np.any(obstacles != 0.0, axis=1) & (obstacles[:, 5] < handle[2])
-                   & (obstacles[:, 0] <= handle[0] - reach) & (obstacles[:, 3] >= handle[3] + reach)
-                   & (obstacles[:, 1] <= handle[1] - reach) & (obstacles[:, 4] >= handle[4] + reach))
-        if not surface.any():
-            return False
-        lowest = (handle[2] + handle[5]) / 2 - p.bar_sag - p.palm_half_along
-        return bool(lowest < float(obstacles[surface, 5].max()))
+        return self._handles.front_blocked(obs)
 
     def _hook_bar(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Hook the closed fingertips behind the bar from above, tilted, and drag it along the axis."""
-        p = self.params
-        eef = obs["robot0_eef_pos"]
-        handle, d, center, extent = _handle_frame(obs)
-        out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
-        up = np.array([0.0, 0.0, 1.0])
-        tilt = p.hook_tilt
-        approach = -up * np.cos(tilt) - out * np.sin(tilt)  # fingertips down and toward the cabinet
-        finger_axis = np.cross(up, out)  # closing along the bar
-        desired = np.column_stack([np.cross(finger_axis, approach), finger_axis, approach])
-        ori_error = float(np.linalg.norm(_rotvec(desired @ _quat_to_mat(obs["robot0_eef_quat"]).T)))
-        # The fingertip's end (hook_tip beyond the grip site along the approach) just behind the bar.
-        tip = center - out * (extent + p.hook_gap)
-        tip[2] = handle[5] - p.hook_depth
-        site = tip - approach * p.hook_tip
-        hover = site - approach * p.hook_hover
-        rel = eef - site
-        along = float(rel @ approach)  # negative: back along the fingers, above the hook pose
-        lateral = float(np.linalg.norm(rel - along * approach))
-        remaining = float(np.linalg.norm(obs["task_target_pos"] - center))
-        if abs(along) < p.hook_tolerance and lateral < p.hook_tolerance and ori_error < p.bar_ori_tolerance:
-            # Hooked: drag the bar along its axis, pressing into it.
-            goal = eef + out * (remaining + p.overshoot) - up * p.hook_press
-            action = self._move(eef, goal, _CLOSE, p.handle_max_action)
-        elif ori_error > p.bar_ori_tolerance or (lateral > p.hook_tolerance and along >= -0.01):
-            # Not turned yet, or off the line of approach near the bar: over the hover point first.
-            goal = hover if np.linalg.norm(eef - hover) > p.hook_tolerance else site
-            action = self._move(eef, goal, _CLOSE, p.handle_max_action)
-        else:
-            action = self._move(eef, site, _CLOSE, p.handle_max_action)  # down the line of approach
-        action[3:6] = self._orient(obs, desired)
-        return action
+        return self._handles.hook_bar(obs)
 
     def _pull_bar(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Face the bar (fingers horizontal, closing vertically), grasp it and move it along the axis."""
-        p = self.params
-        eef = obs["robot0_eef_pos"]
-        handle, d, center, extent = _handle_frame(obs)
-        # The handle protrudes toward the side it is pulled from; face it from there.
-        out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
-        approach = -out  # hand z axis (palm to fingertips) points at the cabinet
-        finger_axis = np.array([0.0, 0.0, 1.0])
-        desired = np.column_stack([np.cross(finger_axis, approach), finger_axis, approach])
-        ori_error = float(np.linalg.norm(_rotvec(desired @ _quat_to_mat(obs["robot0_eef_quat"]).T)))
-        grasp = center + out * (extent - p.bar_depth)
-        grasp[2] = center[2] - p.bar_sag
-        standoff = grasp + out * p.bar_standoff
-        gap = float(obs["robot0_gripper_qpos"][0] - obs["robot0_gripper_qpos"][1])
-        rel = eef - grasp
-        along = float(rel @ out)
-        lateral = rel - along * out
-        at_grasp = abs(along) < p.handle_tolerance and np.linalg.norm(lateral) < p.bar_tolerance
-        remaining = float(np.linalg.norm(obs["task_target_pos"] - center))
-        holding = bool(obs["task_grasped"][0] > 0.5)
-        if holding:
-            goal = eef + d * (remaining + p.overshoot)
-            action = self._move(eef, goal, _CLOSE, p.handle_max_action)
-        elif at_grasp:
-            if gap < p.bar_closed_gap:  # closed on nothing: back off
-                action = self._move(eef, standoff, self._aperture(gap, p.bar_open_gap), p.handle_max_action)
-            else:
-                action = self._move(eef, grasp, _CLOSE, p.handle_max_action)
-        elif ori_error > p.bar_ori_tolerance or np.linalg.norm((eef - standoff) - ((eef - standoff) @ out) * out) > p.bar_tolerance:
-            # Turn and line up in front of the bar first, well clear of the cabinet.
-            action = self._move(eef, standoff, self._aperture(gap, p.bar_open_gap), p.handle_max_action)
-        else:
-            action = self._move(eef, grasp, self._aperture(gap, p.bar_open_gap), p.handle_max_action)
-        action[3:6] = self._orient(obs, desired)
-        return action
+        return self._handles.pull_bar(obs)
 
 
 def _overlap(a: np.ndarray, b: np.ndarray) -> bool:
@@ -805,14 +626,3 @@ def _path_free(moving: np.ndarray, ref: np.ndarray, path: np.ndarray, obstacles:
     left = np.maximum.accumulate(~hit, axis=0)
     return not bool((hit & left).any())
 
-
-def _handle_frame(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """The handle's box, its horizontal motion direction, its centre and its half-extent along it."""
-    handle = obs["task_object_bbox"]
-    d = obs["task_motion_dir"].copy()
-    d[2] = 0.0
-    d /= max(float(np.linalg.norm(d)), 1e-9)
-    center = (handle[:3] + handle[3:]) / 2
-    half = (handle[3:] - handle[:3]) / 2
-    extent = float(abs(d[0]) * half[0] + abs(d[1]) * half[1])
-    return handle, d, center, extent

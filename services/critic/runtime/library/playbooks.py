@@ -28,6 +28,11 @@ from services.critic.runtime.library.schema import resolve
 ACQUIRE_STAGES = ("reached", "grasped", "lifted")
 PLACE_STAGES = ("above", "on", "in", "released")
 PICK_PLACE_STAGES = ACQUIRE_STAGES + PLACE_STAGES
+#: Milestone kinds of an articulation stage (open/close a drawer, turn a knob on/off): reaching the
+#: handle, touching it, then the stage's goal predicate (services/env_worker/milestones.py names the
+#: handle milestones reached_handle and contact_handle; orchestrator.milestone_kind reads them so).
+HANDLE_STAGES = ("reached_handle", "contact_handle")
+ARTICULATION_STAGES = HANDLE_STAGES + ("open", "close", "turnon", "turnoff")
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,11 @@ PLAYBOOKS: dict[str, PlaybookSpec] = {
             PICK_PLACE_STAGES, max_steps=300, max_uses=2,
             doc="acquire the object and place it in one intervention, for a policy that cannot be trusted "
                 "to carry what it is handed"),
+        PlaybookSpec(
+            "operate", ("operate_handle",), ARTICULATION_STAGES, max_steps=320, max_uses=2,
+            doc="carry an articulation stage to its goal: face, grip and pull or push a drawer's bar along its "
+                "axis (hooked from above when too low to grip), or push a knob's lever along its tangent; then "
+                "open the hand and back off (the oracle's handle motions, services/common/handles.py)"),
     )
 }
 

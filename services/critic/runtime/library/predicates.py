@@ -97,6 +97,30 @@ def non_approach(w: Window, p: Mapping[str, float]) -> Details:
     return {"eef_object_dist": dist, "gain": before - dist, "steps": float(n)}
 
 
+def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
+    """An articulation stage (open/close a drawer, turn a knob) is not progressing: over the last
+    ``horizon`` frames, all in that stage, no new milestone was reached, the hand came less than
+    ``min_approach`` closer to the handle and the handle less than ``min_progress`` closer to its
+    goal position. Covers a policy that never heads for the handle and one that touches it without
+    moving it; silent on every other stage, so it clears once the env moves on."""
+    n = int(p["horizon"])
+    if len(w.frames) < n:
+        return None
+    first, now = w.frames[-n], w.now
+    if not (t.articulation_stage(now) and t.articulation_stage(first)) or t.stage_kind(first) != t.stage_kind(now):
+        return None
+    if not np.allclose(t.vec(first, "task_target_pos"), t.vec(now, "task_target_pos"), atol=0.02):
+        return None  # another handle's stage (e.g. a second drawer)
+    if now.milestones - first.milestones:
+        return None
+    approach = t.scalar(first, "phi_eef_object_dist") - t.scalar(now, "phi_eef_object_dist")
+    progress = t.handle_remaining(first) - t.handle_remaining(now)
+    if approach >= p["min_approach"] or progress >= p["min_progress"]:
+        return None
+    return {"approach": approach, "progress": progress, "remaining": t.handle_remaining(now),
+            "eef_handle_dist": t.scalar(now, "phi_eef_object_dist"), "steps": float(n)}
+
+
 def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
     """The hand closed in on another object (by ``min_gain`` over ``horizon`` frames, to within
     ``near`` of it) while not closing in on the task object and farther from it than from that one."""
@@ -264,6 +288,11 @@ PREDICATES: dict[str, PredicateSpec] = {
             "near": _f(0.08, 0.01, 0.3, "distance (m) to the other object that counts as approaching it"),
             "min_gain": _f(0.03, 0.0, 0.3, "how much closer (m) to the other object"),
         }, approach_wrong_object.__doc__ or "", holding=False),
+        PredicateSpec("articulation_stalled", articulation_stalled, {
+            "horizon": _i(40, 5, 200, "frames looked back"),
+            "min_approach": _f(0.02, 0.0, 0.2, "how much closer (m) to the handle the hand must have come"),
+            "min_progress": _f(0.01, 0.0, 0.1, "how much closer (m) to its goal the handle must have come"),
+        }, articulation_stalled.__doc__ or ""),
         PredicateSpec("drift", drift, {
             "max_drift": _f(0.03, 0.002, 0.2, "slip in the hand (m) that counts as drift"),
         }, drift.__doc__ or "", holding=True),

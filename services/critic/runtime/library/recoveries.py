@@ -10,12 +10,15 @@ that moves and never replays a recorded trajectory.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common import handles
 from services.critic.runtime.api import Window
+from services.critic.runtime.orchestrator import first_missing, milestone_kind
 from services.critic.runtime.library import tools as t
 from services.critic.runtime.library.schema import Param, RecoverySpec
 
@@ -330,6 +333,121 @@ class RetreatUntilSeparated(Recovery):
         return t.move_action(eef, eef + [0.0, 0.0, 0.05], t.OPEN, max_action=self.p["max_action"])
 
 
+class OperateHandle(Recovery):
+    """Carry an articulation stage (open/close a drawer, turn a knob on/off) to its goal with the
+    oracle's handle motions (services/common/handles.py), recomputed every step from the live handle
+    box and motion direction: a drawer's bar is faced, gripped and pulled or pushed along the
+    drawer's axis (hooked from above where the palm would reach into the table under a low bar, its
+    last centimetres pushed with a finger), a knob's lever is pushed along its tangent with a finger.
+    Done once the stage's goal milestone is reached or the env moves on to the next stage; the hand
+    then opens and backs off ``retreat`` from the fixture and ``rise`` up (at most ``release_steps``
+    steps). A hand that starts (or stalls) within ``restage_radius`` of the handle, where the
+    policy left it (resting on the bar, under it), first rises straight up to ``restage_height``
+    over the handle's top, so the approach starts from above as the oracle's does. An attempt
+    stalls when for ``stall_steps`` steps neither the hand moved ``stall_motion`` nor the handle came
+    ``min_progress`` closer to its goal; the next attempt restages first. Fails when the stage is
+    not an articulation, after ``max_steps`` operating steps, or after ``max_attempts`` stalls."""
+
+    name = "operate_handle"
+
+    #: Parameters passed through to the shared handle geometry (HandleParams fields).
+    GEOMETRY = ("overshoot", "handle_tolerance", "handle_hover", "bar_standoff", "bar_open_gap", "bar_sag",
+                "hook_tilt", "hook_press")
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        super().start(w, memory)
+        now = w.now
+        geometry = {k: self.p[k] for k in self.GEOMETRY if k in self.p}
+        geometry["handle_max_action"] = self.p.get("max_action", 1.0)
+        self.skill = handles.HandleSkill(dataclasses.replace(handles.HandleParams(), **geometry),
+                                         self._move, t.STAGE_KINDS)
+        self.kind = t.stage_kind(now) if t.articulation_stage(now) else ""
+        # The stage's goal milestone: the first of its kind from m* on (open(r), turnon(s), ...).
+        names = list(w.milestone_names)
+        m_star = first_missing(names, now.milestones)
+        tail = names[names.index(m_star):] if m_star in names else []
+        self.goal = next((n for n in tail if milestone_kind(n) == self.kind), "")
+        self.phase = "operate"
+        self.attempts = 0
+        self._restage_at = -1.0
+        if self.kind:
+            self._maybe_restage(now)
+        self._steps = 0
+        self._track: list[tuple[np.ndarray, float]] = []
+        self._out = np.zeros(3)
+        self._release_from = np.zeros(3)
+        self._released = 0
+
+    def _move(self, eef: np.ndarray, goal: np.ndarray, gripper: float, limit: float) -> np.ndarray:
+        return t.move_action(eef, goal, gripper, max_action=limit)
+
+    def _maybe_restage(self, now) -> None:  # type: ignore[no-untyped-def]
+        """Rise first when the hand is near the handle and below the restage height."""
+        handle = t.vec(now, "task_object_bbox")
+        eef = t.vec(now, "robot0_eef_pos")
+        top = float(handle[5]) + self.p["restage_height"]
+        if t.scalar(now, "phi_eef_object_dist") < self.p["restage_radius"] and eef[2] < top - 0.01:
+            self.phase, self._restage_at, self._restage_steps = "restage", top, 0
+
+    def _goal_holds(self, w: Window) -> bool:
+        now = w.now
+        if self.goal and self.goal in now.milestones:
+            return True
+        return t.stage_kind(now) != self.kind  # the env moved on: this stage's goal holds
+
+    def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        eef = np.asarray(t.vec(now, "robot0_eef_pos"), dtype=np.float64)
+        if self.phase == "restage":
+            self._restage_steps += 1
+            if eef[2] < self._restage_at - 0.01 and self._restage_steps <= 30 and not self._goal_holds(w):
+                return t.move_action(eef, np.array([eef[0], eef[1], self._restage_at]), t.OPEN, max_action=0.5)
+            self.phase, self._track = "operate", []
+        if self.phase == "operate":
+            if not self.kind:
+                self._finish(FAILED, "the stage is not an articulation with a published handle")
+                return None
+            if self._goal_holds(w):
+                self.phase, self._release_from = "release", eef.copy()
+            else:
+                return self._operate(w, eef)
+        if self._released >= int(self.p["release_steps"]):
+            self._finish(DONE)
+            return None
+        goal = self._release_from + self._out * self.p["retreat"] + np.array([0.0, 0.0, self.p["rise"]])
+        opened = t.scalar(now, "phi_gripper_aperture") >= self.p["open_gap"]
+        if opened and np.linalg.norm(goal - eef) < 0.01:
+            self._finish(DONE)
+            return None
+        self._released += 1
+        return t.move_action(eef, goal, t.OPEN, max_action=0.5)
+
+    def _operate(self, w: Window, eef: np.ndarray) -> np.ndarray | None:
+        self._steps += 1
+        if self._steps > int(self.p["max_steps"]):
+            self._finish(FAILED, f"the {self.kind} stage's goal does not hold after {self._steps - 1} steps")
+            return None
+        now = w.now
+        left = t.handle_remaining(now)
+        self._track.append((eef, left))
+        n = int(self.p["stall_steps"])
+        if len(self._track) > n:
+            eef0, left0 = self._track[-n - 1]
+            if float(np.linalg.norm(eef - eef0)) < self.p["stall_motion"] and left0 - left < self.p["min_progress"]:
+                self.attempts += 1
+                if self.attempts >= int(self.p["max_attempts"]):
+                    self._finish(FAILED, f"no progress for {n} steps in {self.attempts} attempt(s): the hand "
+                                         f"stalled {left:.3f} m short of the goal")
+                    return None
+                self._track = []
+                self._maybe_restage(now)
+                if self.phase == "restage":
+                    return self.act(w)
+        obs = t.float_obs(now)
+        self._out = self.skill.outward(obs)
+        return self.skill.act(obs)
+
+
 class Chain(Recovery):
     """Several recoveries one after the other (a playbook's steps); fails as soon as one fails."""
 
@@ -421,6 +539,28 @@ RECOVERIES: dict[str, RecoverySpec] = {
             "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as released"),
             "release_steps": _i(15, 1, 60, "most steps spent opening"),
         }, LowerUntilSupportedThenRelease.__doc__ or ""),
+        RecoverySpec("operate_handle", OperateHandle, {
+            "max_steps": _i(250, 20, 600, "steps of operating before the intervention fails"),
+            "stall_steps": _i(40, 5, 200, "steps without progress that count as stalled"),
+            "stall_motion": _f(0.01, 0.0, 0.1, "hand travel (m) over stall_steps that counts as progress"),
+            "min_progress": _f(0.005, 0.0, 0.05, "handle travel (m) toward its goal that counts as progress"),
+            "max_action": _f(1.0, 0.1, 1.0, "largest translational action"),
+            "overshoot": _f(0.05, 0.0, 0.15, "travel (m) commanded past the handle's goal position"),
+            "handle_tolerance": _f(0.008, 0.002, 0.03, "position tolerance (m) of the finger push's start"),
+            "handle_hover": _f(0.05, 0.01, 0.15, "height (m) over the handle to move across at"),
+            "bar_standoff": _f(0.06, 0.02, 0.15, "standoff (m) in front of a bar before moving in to grip it"),
+            "bar_open_gap": _f(0.045, 0.02, 0.08, "finger gap (m) while approaching a bar"),
+            "bar_sag": _f(0.008, 0.0, 0.03, "how far (m) below a bar the sideways hand aims"),
+            "hook_tilt": _f(0.4, 0.0, 0.8, "tilt (rad) of the fingers hooking a low bar"),
+            "hook_press": _f(0.05, 0.0, 0.1, "how hard (m of goal offset) the hook presses into the bar"),
+            "max_attempts": _i(1, 1, 5, "stalled attempts before the intervention fails"),
+            "restage_radius": _f(0.0, 0.0, 0.3, "grip site to handle box (m) within which the hand rises first (0: never)"),
+            "restage_height": _f(0.1, 0.02, 0.3, "height (m) over the handle's top to rise to"),
+            "release_steps": _i(25, 0, 100, "most steps spent opening and backing off once the goal holds"),
+            "retreat": _f(0.05, 0.0, 0.2, "how far (m) the hand backs off from the fixture once done"),
+            "rise": _f(0.05, 0.0, 0.2, "how far (m) the hand rises once done"),
+            "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as open"),
+        }, OperateHandle.__doc__ or ""),
         RecoverySpec("retreat_until_separated", RetreatUntilSeparated, {
             "distance": _f(0.06, 0.0, 0.3, "grip site to object box (m) that counts as separated"),
             "max_action": _f(0.5, 0.05, 1.0, "largest translational action"),

@@ -15,8 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common import handles
 from services.common.rotations import quat_to_mat, rotvec
 from services.critic.runtime.api import Frame
+from services.env_worker.milestones import STAGE_KINDS
 
 OPEN, CLOSE, KEEP = -1.0, 1.0, 0.0
 #: The hand pointing down with the fingers closing along world y (the default Panda pose).
@@ -75,6 +77,30 @@ def other_object_positions(frame: Frame, task_object: np.ndarray, min_separation
     blocks = blocks[np.any(blocks != 0.0, axis=1)]
     pos = blocks[:, :3]
     return pos[np.linalg.norm(pos - task_object, axis=1) > min_separation]
+
+
+def float_obs(frame: Frame) -> dict[str, np.ndarray]:
+    """The frame's observation tensors as float64 arrays (what the shared handle geometry reads)."""
+    return {k: np.asarray(v, dtype=np.float64) for k, v in frame.obs.items()}
+
+
+# ---- articulation stages (a drawer's bar, a knob's lever) -------------------------------------------
+
+
+def stage_kind(frame: Frame) -> str:
+    """Predicate kind of the goal stage being worked on (``task_stage``; "" when unpublished)."""
+    return handles.stage_kind(frame.obs, STAGE_KINDS)
+
+
+def articulation_stage(frame: Frame) -> bool:
+    """The stage moves a handle (open/close a drawer, turn a knob) along a published direction."""
+    return (stage_kind(frame) in handles.ARTICULATION_KINDS and has_box(vec(frame, "task_object_bbox"))
+            and bool(np.any(vec(frame, "task_motion_dir"))))
+
+
+def handle_remaining(frame: Frame) -> float:
+    """How far (m) the handle's centre still is from its goal position (``task_target_pos``)."""
+    return handles.remaining(frame.obs)
 
 
 # ---- orientation --------------------------------------------------------------------------------
