@@ -215,6 +215,26 @@ def test_training_smoke(tmp_path, policy) -> None:
     assert p2.infer(_batch(2), [instr[0]] * 2).shape == (2, 8, 7)
 
 
+def test_pipeline_reuses_only_teacher_sets_with_the_same_recipe(tmp_path) -> None:
+    import json
+    from dataclasses import asdict
+
+    from services.policy_worker.vla.data import DataRecipe
+    from services.policy_worker.vla.train import reuse_demos
+
+    path = str(tmp_path / "clean.npz")
+    recipe = DataRecipe(teacher="oracle", seeds_per_task=4, max_episodes=40)
+    assert not reuse_demos(recipe, path), "nothing there yet"
+    np.savez(path, states=np.zeros((1, 156), np.float32))
+    (tmp_path / "clean.npz.json").write_text(json.dumps({"recipe": asdict(recipe)}))
+    assert reuse_demos(DataRecipe(teacher="oracle", seeds_per_task=4, max_episodes=40), path)
+    assert not reuse_demos(DataRecipe(teacher="oracle", seeds_per_task=4, max_episodes=41), path)
+    assert not reuse_demos(DataRecipe(teacher="oracle", seeds_per_task=4, max_episodes=40, action_noise=0.1), path)
+    dagger = DataRecipe(teacher="oracle", seeds_per_task=4, max_episodes=40, dagger_checkpoint="ck")
+    (tmp_path / "clean.npz.json").write_text(json.dumps({"recipe": asdict(dagger)}))
+    assert not reuse_demos(dagger, path), "a DAgger set depends on the checkpoint's weights, never reused"
+
+
 def test_gaussian_start_is_seeded_per_request(instruction) -> None:
     """The same request draws the same x0 whatever else shares its batch and whichever policy
     instance serves it; another observation or another policy seed draws another one."""

@@ -168,17 +168,34 @@ class PipelineConfig:
     task-interleaved episode list (``DataRecipe.max_episodes``), so every task gets its share.
     """
 
-    clean_episodes: int = 353
-    noisy_episodes: int = 252
+    clean_episodes: int = 400
+    noisy_episodes: int = 250
     action_noise: float = 0.15
-    steps: int = 3000
+    steps: int = 20000
     lr: float = 1e-3
-    dagger_rounds: int = 1
-    dagger_episodes: int = 100
+    dagger_rounds: int = 3
+    dagger_episodes: int = 150
     beta: float = 0.2
     execute_steps: int = 2
-    finetune_steps: int = 2000
+    finetune_steps: int = 8000
     finetune_lr: float = 5e-4
+
+
+def reuse_demos(recipe, path: str) -> bool:
+    """True when ``path`` holds a teacher-only set (no DAgger student) collected with this exact recipe.
+
+    Clean and DART sets depend on nothing but their recipe (per-episode seeded noise, the same
+    teacher code), so an interrupted pipeline need not collect them again. DAgger sets are never
+    reused: they depend on the checkpoint that drove them, not only on its path.
+    """
+    from services.policy_worker.vla.data import default_teacher
+
+    meta = Path(path + ".json")
+    if recipe.dagger_checkpoint or not Path(path).exists() or not meta.exists():
+        return False
+    want = asdict(recipe)
+    want["teacher"] = want["teacher"] or default_teacher()
+    return json.loads(meta.read_text()).get("recipe") == want
 
 
 def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int], processes: int,
@@ -190,6 +207,9 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
         path = f"{demo_dir}/{name}.npz"
         recipe = DataRecipe(tasks=tasks, teacher=teacher, processes=processes, image_size=model_cfg.image_size,
                             seeds_per_task=-(-episodes // len(tasks)), max_episodes=episodes, **kw)
+        if reuse_demos(recipe, path):
+            log(f"reusing {path}: its recipe is this one")
+            return path
         log(json.dumps(collect(recipe, path, log=log)))
         return path
 
