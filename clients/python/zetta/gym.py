@@ -146,3 +146,5 @@ class ZettaEnv(gymnasium.Env):
 
 
 gymnasium.register(id="zetta/Session-v0", entry_point="zetta.gym:ZettaEnv")
+# The in-process env needs this repository's services package (resolved only by gymnasium.make).
+gymnasium.register(id="zetta/Local-v0", entry_point="services.env_worker.families.gym_env:LocalFamilyEnv")

@@ -5,6 +5,7 @@ and success predicate an env worker serves) inside their own training loop or a 
 env. ``zetta.gym.ZettaEnv`` is the same API over a session of a running stack; both build their
 spaces with ``zetta.gym.space_for`` from the family's schema.
 
+    import zetta.gym  # registers the ids
     env = gymnasium.make("zetta/Local-v0", env_family="libero",
                          env_config={"suite": "libero_goal", "task": "put_the_cream_cheese_in_the_bowl"})
 """
@@ -95,6 +96,3 @@ class LocalFamilyEnv(gymnasium.Env):
     def _observation(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         self._last = {k: raw[k] for k in self._keys}
         return dict(self._last)
-
-
-gymnasium.register(id="zetta/Local-v0", entry_point="services.env_worker.families.gym_env:LocalFamilyEnv")
