@@ -12,6 +12,7 @@ import time
 from dataclasses import asdict, dataclass
 from dataclasses import replace as dataclasses_replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -19,6 +20,9 @@ import torch
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.policy import save_checkpoint
 from services.policy_worker.vla.text import TextEncoder
+
+if TYPE_CHECKING:  # data.py imports the env families; only its recipe type is named here
+    from services.policy_worker.vla.data import DataRecipe
 
 
 @dataclass
@@ -181,7 +185,7 @@ class PipelineConfig:
     finetune_lr: float = 5e-4
 
 
-def reuse_demos(recipe, path: str) -> bool:
+def reuse_demos(recipe: DataRecipe, path: str) -> bool:
     """True when ``path`` holds a teacher-only set (no DAgger student) collected with this exact recipe.
 
     Clean and DART sets depend on nothing but their recipe (per-episode seeded noise, the same
