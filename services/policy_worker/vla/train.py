@@ -21,7 +21,7 @@ from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.policy import save_checkpoint
 from services.policy_worker.vla.text import TextEncoder
 
-if TYPE_CHECKING:  # data.py imports the env families; only its recipe type is named here
+if TYPE_CHECKING:  # data.py is imported where it is used, as the functions below do
     from services.policy_worker.vla.data import DataRecipe
 
 
