@@ -59,7 +59,57 @@ def spec_space(spec: types_pb2.TensorSpec) -> spaces.Space:
                      spec.low if spec.HasField("low") else None, spec.high if spec.HasField("high") else None)
 
 
-class ZettaEnv(gymnasium.Env):
+def check_render_mode(render_mode: str | None) -> None:
+    """Refuse a render mode the Zetta envs do not offer, before anything is built."""
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+
+
+class SchemaEnv(gymnasium.Env):
+    """What every Zetta env shares, whatever steps it: spaces and the observation's keys from a
+    tensor schema, episode seeds, and ``render`` of the latest camera frame."""
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def _set_spaces(self, observation: Mapping[str, spaces.Space], privileged: Iterable[str], action: spaces.Space,
+                    include_privileged: bool, render_mode: str | None, render_camera: str) -> None:
+        """Spaces of the tensors kept (privileged ones only if asked); ValueError for rgb_array
+        without a camera among them (the caller frees what it built)."""
+        hidden = set() if include_privileged else set(privileged)
+        self._keys = [name for name in observation if name not in hidden]
+        self.observation_space = spaces.Dict({name: observation[name] for name in self._keys})
+        self.action_space = action
+        self.render_mode = render_mode
+        images = [name for name in self._keys if name.endswith("_image")]
+        self._camera = render_camera or (images[0] if images else "")
+        self._last: dict[str, np.ndarray] = {}
+        if render_mode == "rgb_array" and self._camera not in images:
+            raise ValueError(f"render_mode='rgb_array' needs a camera in the observations "
+                             f"({images or 'none: set env_config cameras'}), got {self._camera or 'none'!r}")
+
+    def _start(self, seed: int | None, options: Mapping[str, Any] | None, known: Iterable[str]
+               ) -> tuple[dict[str, Any], int]:
+        """The checked reset options and the episode seed: ``seed``, or a draw from the env's own
+        generator (seeded by the first ``reset(seed=...)``) when None."""
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - set(known)
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; known: {list(known)}")
+        return options, seed if seed is not None else int(self.np_random.integers(2**31))
+
+    def render(self) -> np.ndarray | None:
+        """The latest frame of ``render_camera`` (the first camera by default) with rgb_array."""
+        if self.render_mode != "rgb_array":
+            return None
+        return self._last.get(self._camera)
+
+    def _observation(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        self._last = {k: raw[k] for k in self._keys}
+        return dict(self._last)
+
+
+class ZettaEnv(SchemaEnv):
     """One session of ``env_family`` through the gateway at ``gateway``, as a ``gymnasium.Env``.
 
     ``gateway`` is an address (a private blocking connection is opened and closed with the env) or
@@ -68,13 +118,10 @@ class ZettaEnv(gymnasium.Env):
     a seeded first reset makes the whole sequence of episodes reproducible.
     """
 
-    metadata = {"render_modes": ["rgb_array"]}
-
     def __init__(self, gateway: str | SyncGateway, env_family: str, env_config: Mapping[str, Any] | None = None,
                  task: str | int = "", include_privileged: bool = True, render_mode: str | None = None,
                  render_camera: str = "") -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        check_render_mode(render_mode)
         self._owns_gateway = isinstance(gateway, str)
         self._gateway = SyncGateway(gateway) if isinstance(gateway, str) else gateway
         try:
@@ -86,28 +133,18 @@ class ZettaEnv(gymnasium.Env):
         info = self._sessions.infos[0]
         self.session_id: str = info.session_id
         self.task = str(task)
-        self.render_mode = render_mode
-        self._keys = [s.name for s in info.observation_schema if include_privileged or not s.privileged]
-        self.observation_space = spaces.Dict({s.name: spec_space(s) for s in info.observation_schema
-                                              if s.name in self._keys})
-        self.action_space = spec_space(info.action_spec)
-        images = [k for k in self._keys if k.endswith("_image")]
-        self._camera = render_camera or (images[0] if images else "")
-        if render_mode == "rgb_array" and self._camera not in images:
+        try:
+            self._set_spaces({s.name: spec_space(s) for s in info.observation_schema},
+                             [s.name for s in info.observation_schema if s.privileged], spec_space(info.action_spec),
+                             include_privileged, render_mode, render_camera)
+        except ValueError:
             self.close()
-            raise ValueError(f"render_mode='rgb_array' needs a camera in the session's observations "
-                             f"({images or 'none: set env_config cameras'}), got {self._camera or 'none'!r}")
-        self._last: dict[str, np.ndarray] = {}
+            raise
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        super().reset(seed=seed)
-        options = dict(options or {})
-        unknown = set(options) - set(RESET_OPTIONS)
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; known: {list(RESET_OPTIONS)}")
+        options, episode_seed = self._start(seed, options, RESET_OPTIONS)
         options.setdefault("task", self.task)
-        episode_seed = seed if seed is not None else int(self.np_random.integers(2**31))
         result: ResetResult = self._sessions.reset(seed=episode_seed, **options)[0]
         info = {"episode_id": result.episode_id, "instruction": result.instruction, "max_steps": result.max_steps,
                 "milestone_names": list(result.milestone_names), "seed": episode_seed}
@@ -126,12 +163,6 @@ class ZettaEnv(gymnasium.Env):
             info["video_path"] = result.video_path
         return self._observation(result.observation), result.reward, result.terminated, result.truncated, info
 
-    def render(self) -> np.ndarray | None:
-        """The latest frame of ``render_camera`` (the first camera by default) with rgb_array."""
-        if self.render_mode != "rgb_array":
-            return None
-        return self._last.get(self._camera)
-
     def close(self) -> None:
         sessions, self._sessions = getattr(self, "_sessions", None), None
         if sessions is not None:
@@ -139,10 +170,6 @@ class ZettaEnv(gymnasium.Env):
         if self._owns_gateway and self._gateway is not None:
             self._gateway.close()
             self._gateway = None
-
-    def _observation(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        self._last = {k: raw[k] for k in self._keys}
-        return dict(self._last)
 
 
 gymnasium.register(id="zetta/Session-v0", entry_point="zetta.gym:ZettaEnv")
