@@ -101,6 +101,16 @@ class HandleParams:
     palm_half_along: float = 0.105
 
 
+def _pull_side(obs: Obs, center: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The unit direction along the drawer's axis ``d`` that moves the bar toward its goal."""
+    return d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
+
+
+def _turn_left(obs: Obs, desired: np.ndarray) -> float:
+    """Angle (rad) the hand still has to turn to reach the rotation ``desired``."""
+    return float(np.linalg.norm(rotvec(desired @ quat_to_mat(obs["robot0_eef_quat"]).T)))
+
+
 def handle_frame(obs: Obs) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The handle's box, its horizontal motion direction, its centre and its half-extent along it."""
     handle = obs["task_object_bbox"]
@@ -265,13 +275,13 @@ class HandleSkill:
         p = self.params
         eef = obs["robot0_eef_pos"]
         handle, d, center, extent = handle_frame(obs)
-        out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
+        out = _pull_side(obs, center, d)
         up = np.array([0.0, 0.0, 1.0])
         tilt = p.hook_tilt
         approach = -up * np.cos(tilt) - out * np.sin(tilt)  # fingertips down and toward the cabinet
         finger_axis = np.cross(up, out)  # closing along the bar
         desired = np.column_stack([np.cross(finger_axis, approach), finger_axis, approach])
-        ori_error = float(np.linalg.norm(rotvec(desired @ quat_to_mat(obs["robot0_eef_quat"]).T)))
+        ori_error = _turn_left(obs, desired)
         # The fingertip's end (hook_tip beyond the grip site along the approach) just behind the bar.
         tip = center - out * (extent + p.hook_gap)
         tip[2] = handle[5] - p.hook_depth
@@ -300,11 +310,11 @@ class HandleSkill:
         eef = obs["robot0_eef_pos"]
         handle, d, center, extent = handle_frame(obs)
         # The handle protrudes toward the side it is pulled from; face it from there.
-        out = d if float((obs["task_target_pos"] - center) @ d) > 0 else -d
+        out = _pull_side(obs, center, d)
         approach = -out  # hand z axis (palm to fingertips) points at the cabinet
         finger_axis = np.array([0.0, 0.0, 1.0])
         desired = np.column_stack([np.cross(finger_axis, approach), finger_axis, approach])
-        ori_error = float(np.linalg.norm(rotvec(desired @ quat_to_mat(obs["robot0_eef_quat"]).T)))
+        ori_error = _turn_left(obs, desired)
         grasp = center + out * (extent - p.bar_depth)
         grasp[2] = center[2] - p.bar_sag
         standoff = grasp + out * p.bar_standoff

@@ -31,3 +31,17 @@ def rotvec(m: np.ndarray) -> np.ndarray:
         axis = col[:, int(np.argmax(np.linalg.norm(col, axis=0)))]
         norm = float(np.linalg.norm(axis))
     return axis / norm * angle
+
+
+def hand_down(finger_axis_xy: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Rotation of the hand pointing down with the fingers closing along ``finger_axis_xy``, taking
+    the sign nearest the current hand (rotation ``current``) so it never turns by more than 90 degrees.
+
+    The hand is narrow across its finger axis (about 7 cm) and wide along it (about 21 cm), so a
+    push with the side of the fingers needs little room behind the object."""
+    y = np.array([finger_axis_xy[0], finger_axis_xy[1], 0.0])
+    y /= max(float(np.linalg.norm(y)), 1e-9)
+    if float(y @ current[:, 1]) < 0:
+        y = -y
+    z = np.array([0.0, 0.0, -1.0])
+    return np.column_stack([np.cross(y, z), y, z])

@@ -44,6 +44,7 @@ import numpy as np
 
 from services.common.handles import DOWN, HandleParams, HandleSkill
 from services.common.handles import aperture as _aperture_command
+from services.common.rotations import hand_down
 from services.common.rotations import quat_to_mat as _quat_to_mat
 from services.common.specs import TensorSpec
 from services.env_worker.families.task_state import OBSTACLE_SLOTS
@@ -303,7 +304,7 @@ class OraclePolicy:
                 finger_axis = hand[:2, 1]
             else:
                 finger_axis = np.eye(3)[axis][:2]
-            action[3:6] = self._orient(obs, self._pitched(self._fingers_across(obs, finger_axis), pitch))
+            action[3:6] = self._orient(obs, self._pitched(hand_down(finger_axis, hand), pitch))
             return action
         action[3:6] = self._orient(obs, DOWN)
         return action
@@ -528,7 +529,7 @@ class OraclePolicy:
         else:
             u = delta / distance
             perp = np.array([-u[1], u[0]])
-            desired = self._fingers_across(obs, perp)
+            desired = hand_down(perp, _quat_to_mat(obs["robot0_eef_quat"]))
             center = (box[:2] + box[3:5]) / 2
             half = (box[3:5] - box[:2]) / 2
             extent = abs(u[0]) * half[0] + abs(u[1]) * half[1]
@@ -561,20 +562,6 @@ class OraclePolicy:
                 action = self._move(eef, np.array([*start_xy, low - p.press]), _CLOSE, p.push_max_action)
         action[3:6] = self._orient(obs, desired)
         return action
-
-    @staticmethod
-    def _fingers_across(obs: dict[str, np.ndarray], axis_xy: np.ndarray) -> np.ndarray:
-        """Hand pointing down with the fingers closing along ``axis_xy`` (the sign nearest the current pose).
-
-        The hand is narrow across its finger axis (about 7 cm) and wide along it (about 21 cm), so a
-        push with the side of the fingers needs little room behind the object.
-        """
-        y = np.array([axis_xy[0], axis_xy[1], 0.0])
-        y /= max(float(np.linalg.norm(y)), 1e-9)
-        if float(y @ _quat_to_mat(obs["robot0_eef_quat"])[:, 1]) < 0:
-            y = -y
-        z = np.array([0.0, 0.0, -1.0])
-        return np.column_stack([np.cross(y, z), y, z])
 
     # -- handles: knob levers and drawer bars ------------------------------------------------------
 

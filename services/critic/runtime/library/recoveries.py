@@ -19,6 +19,7 @@ import numpy as np
 from services.common import handles
 from services.critic.runtime.api import Window
 from services.critic.runtime.orchestrator import first_missing, milestone_kind
+from services.common.rotations import hand_down
 from services.critic.runtime.library import tools as t
 from services.critic.runtime.library.schema import Param, RecoverySpec
 
@@ -116,7 +117,7 @@ class Pregrasp(Recovery):
         eef, box = t.vec(now, "robot0_eef_pos"), t.vec(now, "task_object_bbox")
         goal = self.proposal.point(box) + [0.0, 0.0, self.p["hover"]]
         hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
-        desired = t.hand_down(np.eye(3)[self.proposal.finger_axis][:2], hand)
+        desired = hand_down(np.eye(3)[self.proposal.finger_axis][:2], hand)
         turned = float(np.linalg.norm(t.rotvec(desired @ hand.T)))
         if np.linalg.norm(goal - eef) < self.p["tolerance"] and turned < self.p["angle_tolerance"]:
             self._finish(DONE)
@@ -198,7 +199,7 @@ class Regrasp(Recovery):
         assert proposal is not None
         box = t.vec(now, "task_object_bbox")
         hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
-        rot = t.orient_action(t.vec(now, "robot0_eef_quat"), t.hand_down(np.eye(3)[proposal.finger_axis][:2], hand))
+        rot = t.orient_action(t.vec(now, "robot0_eef_quat"), hand_down(np.eye(3)[proposal.finger_axis][:2], hand))
         if self.phase == "descend":
             grasp = proposal.point(box)
             error = float(np.linalg.norm(grasp - eef))

@@ -106,17 +106,6 @@ def handle_remaining(frame: Frame) -> float:
 # ---- orientation --------------------------------------------------------------------------------
 
 
-def hand_down(finger_axis_xy: np.ndarray, current: np.ndarray) -> np.ndarray:
-    """Rotation of the hand pointing down with the fingers closing along ``finger_axis_xy``, taking
-    the sign nearest the current hand so it never turns by more than 90 degrees."""
-    y = np.array([finger_axis_xy[0], finger_axis_xy[1], 0.0])
-    y /= max(float(np.linalg.norm(y)), 1e-9)
-    if float(y @ current[:, 1]) < 0:
-        y = -y
-    z = np.array([0.0, 0.0, -1.0])
-    return np.column_stack([np.cross(y, z), y, z])
-
-
 def orient_action(eef_quat: np.ndarray, desired: np.ndarray, gain: float = 1.0, limit: float = 0.6) -> np.ndarray:
     """Rotation part of an action turning the hand toward ``desired`` (OSC scales 1.0 to 0.5 rad)."""
     error = rotvec(desired @ quat_to_mat(eef_quat).T)
