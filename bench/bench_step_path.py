@@ -8,8 +8,11 @@ stack and the bench's `limit` rows pay the same ones):
 stepper  ``FastStepper.step`` alone: the physics kernel plus robosuite's own per-step Python (what
          `zetta bench rollout`'s `limit` row runs)
 slot     ``slot.step(action, render=False)``: the stepper plus the canonical observation, milestones,
-         physical signals and the success check (the `limit-obs` row)
-chunk    ``EnvWorkerServicer._execute`` on chunks of 8 actions: the slot steps plus what the env
+         physical signals and the success check, every step
+lazy     ``slot.step(action, observe=...)`` observing only after every 8th action: milestones, success
+         and the signals' state every step, the observation where a chunked policy reads it (the
+         `limit-obs` row)
+chunk    ``EnvWorkerServicer._execute`` on chunks of 8 actions: the lazy slot steps plus what the env
          worker adds on a slot thread (metrics, the StepResult of the chunk)
 random   ``FastStepper.step`` on fixed random actions (what the `limit` rows stepped before they
          replayed the policy's), as many per episode as the policy took
@@ -21,7 +24,9 @@ actions do. ``--against REV`` also measures another revision of the code (export
 processes alternate between the two trees, each figure is the median over ``--repeats`` children,
 so load that drifts on a shared machine weighs on both alike. Every child also hashes each replayed
 step's observation, reward, success and info (untimed): the report says whether all runs of both
-trees agree bit for bit, so a speed-up that changes behaviour shows.
+trees agree bit for bit, so a speed-up that changes behaviour shows. It also checks, on this
+tree, that the observations the chunk path returns and every step's reward, success, info and
+milestones are those of the slot path that observes every step.
 
     python bench/bench_step_path.py                    # this tree, 3 repeats (about 1 minute)
     python bench/bench_step_path.py --against HEAD~1   # this tree against the previous commit
@@ -31,6 +36,7 @@ trees agree bit for bit, so a speed-up that changes behaviour shows.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import shutil
@@ -48,7 +54,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "put_the_cream_cheese_in_the_bowl"
-PATHS = ("stepper", "slot", "chunk", "random")
+PATHS = ("stepper", "slot", "lazy", "chunk", "random")
 CHUNK = 8
 
 
@@ -129,6 +135,11 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
             t = time.thread_time()
             for a in actions:
                 slot.step(a, render=False)
+        elif path == "lazy":
+            lazy = "observe" in inspect.signature(slot.step).parameters  # a tree before it observes every step
+            t = time.thread_time()
+            for i, a in enumerate(actions):
+                slot.step(a, observe=i % CHUNK == CHUNK - 1) if lazy else slot.step(a, render=False)
         else:
             bound.episode = Episode("bench", TASK, max_steps)
             t = time.thread_time()
@@ -149,6 +160,7 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
         steps += len(actions)
     out: dict[str, Any] = {p: 1000.0 * cpu[p] / steps for p in PATHS}
     out["digest"] = _digest(slot, recorded, keys)
+    out["chunk_matches_slot"] = _chunk_matches_slot(slot, bound, recorded, keys)
     if parts:
         out["parts"] = _parts(slot, recorded, keys)
     return out
@@ -172,6 +184,35 @@ def _digest(slot: Any, recorded: Any, keys: list[str]) -> str:
             obs = outcome.observation
             h.update(repr((outcome.reward, outcome.success, outcome.terminated, sorted(outcome.info.items()))).encode())
     return h.hexdigest()
+
+
+def _chunk_matches_slot(slot: Any, bound: Any, recorded: Any, keys: list[str]) -> bool:
+    """Whether the env worker's chunk path (observation built only after a chunk's last action)
+    returns the observation, reward, success, info and milestones of the path that observes every
+    step, on every chunk of the replayed episodes."""
+    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.servicer import EnvWorkerServicer
+    from services.env_worker.slots import Episode
+    from zetta.codec import decode_observation
+
+    for key in keys:
+        actions = recorded[key]
+        slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=int(key)))
+        full = []
+        for i in range(0, len(actions), CHUNK):
+            outcomes = [slot.step(a, render=False) for a in actions[i:i + CHUNK]]
+            full.append((outcomes[-1].observation, sum(o.reward for o in outcomes), outcomes[-1].success,
+                         outcomes[-1].info, slot.milestones_reached()))
+        slot.reset(ResetSpec(task=TASK, seed=0, init_state_index=int(key)))
+        bound.episode = Episode("bench", TASK, len(actions) + 1)
+        for i, (obs, reward, success, info, reached) in zip(range(0, len(actions), CHUNK), full):
+            result = EnvWorkerServicer._execute(bound, actions[i:i + CHUNK])
+            got = decode_observation(result.observation)
+            if (sorted(got) != sorted(obs) or any(not np.array_equal(got[n], obs[n]) for n in obs)
+                    or result.reward != reward or result.success != success or dict(result.info) != info
+                    or list(result.milestones_reached) != reached):
+                return False
+    return True
 
 
 def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
@@ -292,13 +333,17 @@ def main() -> None:
     print("\nobservations, rewards and success of every replayed step: "
           + ("identical in every run" + (" of both trees" if len(names) == 2 else "") if len(digests) == 1
              else f"DIFFER ({len(digests)} distinct digests: {', '.join(sorted(digests))})"))
+    chunked = [run.get("chunk_matches_slot") for run in results["this tree"]]
+    print("chunk path (observation after each chunk's last action) against observing every step: "
+          + ("the same observations, rewards, success, info and milestones" if all(chunked) else "DIFFERENT"))
     print(f"CPU ms per action (thread time, resets excluded), median of {args.repeats}; load average "
           f"{os.getloadavg()[0]:.1f} at the end")
     header = f"{'path':<28}" + "".join(f"{n:>14}" for n in names) + (f"{'change':>10}" if len(names) == 2 else "")
     print(header)
     rows = [(p, {n: medians[n][p] for n in names}) for p in PATHS]
     rows += [("slot - stepper (obs)", {n: medians[n]["slot"] - medians[n]["stepper"] for n in names}),
-             ("chunk - slot (env worker)", {n: medians[n]["chunk"] - medians[n]["slot"] for n in names}),
+             ("lazy - stepper (obs/chunk)", {n: medians[n]["lazy"] - medians[n]["stepper"] for n in names}),
+             ("chunk - lazy (env worker)", {n: medians[n]["chunk"] - medians[n]["lazy"] for n in names}),
              ("stepper / chunk", {n: medians[n]["stepper"] / medians[n]["chunk"] for n in names}),
              ("random / stepper", {n: medians[n]["random"] / medians[n]["stepper"] for n in names})]
     for label, values in rows:

@@ -307,6 +307,8 @@ class MilestoneTracker:
         self.stage_holds: list[bool] = [False] * len(plan.stages)
         self._rest: dict[str, float] = {}
         self._start_dist: dict[tuple[str, str], float] = {}
+        #: Milestones whose ``current`` flag the last update skipped (``latch_only``).
+        self._stale = np.zeros(n, dtype=bool)
 
     def start(self, probe: Probe) -> None:
         """Begin an episode: remember resting heights and start distances, then evaluate step 0."""
@@ -323,10 +325,32 @@ class MilestoneTracker:
                     )
         self.update(probe)
 
-    def update(self, probe: Probe) -> np.ndarray:
-        """Evaluate every milestone now; returns the current hold flags (also latched in ``reached``)."""
+    def update(self, probe: Probe, latch_only: bool = False) -> np.ndarray:
+        """Evaluate the milestones now; returns the current hold flags (also latched in ``reached``).
+
+        ``latch_only``: evaluate only the milestones not reached yet, for a step whose observation
+        nobody reads (the steps inside an action chunk). Latching, the stage and the stage
+        predicates are the same as a full update's; the current flags of the milestones skipped
+        are filled in by :meth:`refresh` if this state's observation is asked for after all.
+        """
         holds = [probe.holds(stage.predicate) for stage in self.plan.stages]
         self.stage_holds = holds
+        self._stale = self.reached.copy() if latch_only else np.zeros_like(self.reached)
+        self._evaluate(probe, ~self._stale)
+        self.reached |= self.current
+        self.stage = self._pick_stage(holds)
+        return self.current
+
+    def refresh(self, probe: Probe) -> np.ndarray:
+        """The current flags of the state of the last :meth:`update`, evaluating those it skipped."""
+        if self._stale.any():
+            self._evaluate(probe, self._stale)
+            self._stale[:] = False
+        return self.current
+
+    def _evaluate(self, probe: Probe, which: np.ndarray) -> None:
+        """Set ``current[i]`` for every milestone i with ``which[i]`` from the probe's present state."""
+        holds = self.stage_holds
         eef = probe.eef()
         cache: dict[tuple[str, str], object] = {}
 
@@ -342,6 +366,8 @@ class MilestoneTracker:
             return cache[key]
 
         for i, m in enumerate(self.plan.milestones):
+            if not which[i]:
+                continue
             stage = self.plan.stages[m.stage]
             x, y = stage.subject, stage.target
             if m.kind == "goal":
@@ -373,9 +399,6 @@ class MilestoneTracker:
             else:
                 raise ValueError(f"unknown milestone kind {m.kind!r}")
             self.current[i] = ok
-        self.reached |= self.current
-        self.stage = self._pick_stage(holds)
-        return self.current
 
     def _lifted(self, name: str, box: np.ndarray) -> bool:
         rest = self._rest.get(name)
@@ -413,7 +436,10 @@ class MilestoneTracker:
         return ""
 
     def tensors(self) -> dict[str, np.ndarray]:
-        """The ``milestones``, ``milestones_reached`` and ``task_stage`` observation tensors."""
+        """The ``milestones``, ``milestones_reached`` and ``task_stage`` observation tensors (after a
+        ``latch_only`` update, call :meth:`refresh` first)."""
+        if self._stale.any():
+            raise RuntimeError("milestone flags skipped by a latch-only update were read: call refresh() first")
         current = np.zeros(MAX_MILESTONES, dtype=np.float32)
         reached = np.zeros(MAX_MILESTONES, dtype=np.float32)
         current[: len(self.current)] = self.current

@@ -243,15 +243,16 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         else:
             for i, action in enumerate(chunk):
                 start = time.perf_counter()
-                # Camera images only for the observation this call returns: after the chunk's last action.
-                outcome = env.step(action, render=i == last)
+                # Only the observation this call returns is built: the one after the chunk's last action
+                # (the steps before it keep reward, success, milestones and signal state up to date).
+                outcome = env.step(action, observe=i == last)
                 step_hist.observe(time.perf_counter() - start)
                 reward += outcome.reward
                 executed += 1
                 if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
                     break
         assert outcome is not None
-        if executed - 1 != last:  # the episode ended inside the chunk: render its final observation
+        if executed - 1 != last:  # the episode ended inside the chunk: build its final observation
             outcome.observation = env.observe()
         metrics.STEPS.labels(family).inc(executed)
         truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)

@@ -69,20 +69,23 @@ class Contacts:
 
     geom1: np.ndarray  # [n] int
     geom2: np.ndarray  # [n] int
-    force: np.ndarray  # [n, 3] world frame, acting on geom2 (equal and opposite on geom1)
-    normal: np.ndarray  # [n] normal force magnitude (>= 0)
+    force: np.ndarray  # [n, 3] world frame, acting on geom2 (equal and opposite on geom1); [0, 3] if not read
+    normal: np.ndarray  # [n] normal force magnitude (>= 0); [0] if not read
 
     @classmethod
     def empty(cls) -> Contacts:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
 
-def read_contacts(model: object, data: object, involving: frozenset[int] | None = None) -> Contacts:
+def read_contacts(model: object, data: object, involving: frozenset[int] | None = None,
+                  forces: bool = True) -> Contacts:
     """Contacts of a raw ``mujoco.MjModel``/``MjData`` with world-frame forces (``mj_contactForce``).
 
     ``involving``: keep only the contacts with at least one geom in this set (all when None), in
     MuJoCo's order. The signals only ask about the robot's contacts, while a tabletop scene holds
     many more between objects at rest, each of which would cost an ``mj_contactForce`` call.
+    ``forces=False``: only which geoms touch (``force`` and ``normal`` are left empty), for a step
+    that latches grasps and milestones but builds no observation.
     """
     import mujoco  # lazily: importing this module must not load a simulator
 
@@ -97,6 +100,9 @@ def read_contacts(model: object, data: object, involving: frozenset[int] | None 
         keep = [i for i, (g1, g2) in enumerate(zip(geom1, geom2)) if g1 in involving or g2 in involving]
         if not keep:
             return Contacts.empty()
+    pairs = (np.array([geom1[i] for i in keep], dtype=np.int64), np.array([geom2[i] for i in keep], dtype=np.int64))
+    if not forces:
+        return Contacts(*pairs, np.zeros((0, 3)), np.zeros(0))
     m = len(keep)
     frames = np.asarray(contact.frame[keep]).reshape(m, 3, 3)
     local = np.zeros((m, 6))
@@ -105,12 +111,7 @@ def read_contacts(model: object, data: object, involving: frozenset[int] | None 
         mujoco.mj_contactForce(model, data, i, buf)
         local[row] = buf
     force = np.einsum("nij,ni->nj", frames, local[:, :3])  # frame rows: normal, tangent1, tangent2
-    return Contacts(
-        np.array([geom1[i] for i in keep], dtype=np.int64),
-        np.array([geom2[i] for i in keep], dtype=np.int64),
-        force,
-        np.abs(local[:, 0]),
-    )
+    return Contacts(*pairs, force, np.abs(local[:, 0]))
 
 
 def _ids(geoms: object) -> frozenset[int]:
@@ -230,37 +231,61 @@ class SignalInputs:
 
 
 class SignalTracker:
-    """Computes the signals of each step and keeps the little state two of them need."""
+    """Computes the signals of each step and keeps the little state two of them need.
+
+    The state must follow every step (a grasp's reference is taken on the step it begins, the
+    realized motion is that of the last step), while the signals are read only where an
+    observation is built: :meth:`track` runs on every step, :meth:`tensors` on the steps observed,
+    and :meth:`compute` does both.
+    """
 
     def __init__(self, geoms: GripperGeoms) -> None:
         self.geoms = geoms
         self._grasp_ref: np.ndarray | None = None
         self._grasp_object = 0
         self._last_eef: np.ndarray | None = None
+        self._touch = (False, False)
+        self._realized = np.zeros(3)
 
     def reset(self) -> None:
         """Forget the previous episode."""
         self._grasp_ref = None
         self._grasp_object = 0
         self._last_eef = None
+        self._touch = (False, False)
+        self._realized = np.zeros(3)
 
-    def compute(self, x: SignalInputs) -> dict[str, np.ndarray]:
+    def track(self, contacts: Contacts, object_geoms: frozenset[int] | np.ndarray, object_pos: np.ndarray,
+              eef_pos: np.ndarray, eef_mat: np.ndarray) -> None:
+        """Advance the state over one step (contacts need no forces here)."""
+        g = self.geoms
+        has_object = bool(len(object_geoms))
+        left = has_object and touches(contacts, g.left, object_geoms)
+        right = has_object and touches(contacts, g.right, object_geoms)
+        self._touch = (left, right)
+        if left and right:
+            key = hash(_ids(object_geoms))
+            if self._grasp_ref is None or key != self._grasp_object:
+                self._grasp_ref, self._grasp_object = in_frame(object_pos, eef_pos, eef_mat), key
+        else:
+            self._grasp_ref = None
+        self._realized = np.zeros(3) if self._last_eef is None else np.asarray(eef_pos) - self._last_eef
+        self._last_eef = np.array(eef_pos, dtype=np.float64)
+
+    @property
+    def grasping(self) -> bool:
+        """The grasp predicate of the last tracked step: both fingers touch the object."""
+        return self._touch[0] and self._touch[1]
+
+    def tensors(self, x: SignalInputs) -> dict[str, np.ndarray]:
+        """The signals of the state the last :meth:`track` reached, which ``x`` describes."""
         g = self.geoms
         has_object = bool(len(x.object_geoms))
-        left = has_object and touches(x.contacts, g.left, x.object_geoms)
-        right = has_object and touches(x.contacts, g.right, x.object_geoms)
-        grasp = left and right
+        left, right = self._touch
         relative = in_frame(x.object_pos, x.eef_pos, x.eef_mat)
-        key = hash(_ids(x.object_geoms))
-        if grasp and (self._grasp_ref is None or key != self._grasp_object):
-            self._grasp_ref, self._grasp_object = relative, key
-        elif not grasp:
-            self._grasp_ref = None
-        realized = np.zeros(3) if self._last_eef is None else np.asarray(x.eef_pos) - self._last_eef
-        self._last_eef = np.array(x.eef_pos, dtype=np.float64)
         return {
             "phi_finger_contact": np.array([left, right], dtype=np.float32),
-            "phi_grasp": np.array([grasp], dtype=np.float32),
+            "phi_grasp": np.array([left and right], dtype=np.float32),
             "phi_object_gripper_drift": np.array(
                 [drift(relative, self._grasp_ref) if self._grasp_ref is not None else 0.0], dtype=np.float32
             ),
@@ -274,8 +299,13 @@ class SignalTracker:
                 [collision_intensity(x.contacts, g.robot, x.object_geoms)], dtype=np.float32
             ),
             "phi_gripper_aperture": np.array([x.finger_qpos[0] - x.finger_qpos[1]], dtype=np.float32),
-            "phi_eef_motion": np.concatenate([x.commanded, realized]).astype(np.float32),
+            "phi_eef_motion": np.concatenate([x.commanded, self._realized]).astype(np.float32),
         }
+
+    def compute(self, x: SignalInputs) -> dict[str, np.ndarray]:
+        """One step: :meth:`track` then :meth:`tensors`."""
+        self.track(x.contacts, x.object_geoms, x.object_pos, x.eef_pos, x.eef_mat)
+        return self.tensors(x)
 
 
 def robot_geoms(model: object, gripper_left: Sequence[str], gripper_right: Sequence[str],

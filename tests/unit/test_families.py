@@ -287,6 +287,27 @@ def test_robosuite_lift_steps_and_truncates() -> None:
         family.close()
 
 
+def test_robosuite_lift_observed_after_each_chunk_only() -> None:
+    """observe=False steps (inside a chunk) leave no observation but keep what a later one reads."""
+    family = get_family("robosuite")({"env_name": "Lift", "max_steps": 40})
+    slot = family.init()
+    actions = np.random.default_rng(4).uniform(-1, 1, size=(24, 7)).astype(np.float32)
+    try:
+        slot.reset(ResetSpec("Lift", seed=3))
+        full = [slot.step(a) for a in actions]
+        slot.reset(ResetSpec("Lift", seed=3))
+        for t, a in enumerate(actions):
+            outcome = slot.step(a, observe=t % 4 == 3)
+            assert (outcome.reward, outcome.success, outcome.info) == (full[t].reward, full[t].success, full[t].info)
+            assert (outcome.observation is None) == (t % 4 != 3)
+            observed = outcome.observation if t % 4 == 3 else slot.observe() if t == 9 else {}
+            for name, value in observed.items():
+                assert np.array_equal(value, full[t].observation[name]), f"{name} at step {t}"
+    finally:
+        slot.close()
+        family.close()
+
+
 @pytest.mark.skipif(not select_gl_backend(), reason="no EGL or OSMesa library for offscreen rendering")
 def test_camera_images_are_upright_uint8() -> None:
     cameras = ["agentview", "robot0_eye_in_hand"]

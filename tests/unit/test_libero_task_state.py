@@ -180,6 +180,39 @@ def test_success_is_only_the_environment_predicate(cheese) -> None:
         del env._check_success, env._eval_predicate  # back to the class methods
 
 
+def test_observing_only_after_each_chunk_changes_nothing_observed(cheese) -> None:
+    """Steps taken with observe=False (inside an action chunk) keep milestones, success, reward and
+    the signals' state as observing every step does: each observation built afterwards, after a
+    chunk or when the episode ends inside one, is the same bit for bit, through a grasp and lift."""
+    spec = ResetSpec("", seed=0, init_state_index=3)
+    policy = OraclePolicy()
+    obs, _ = cheese.reset(spec)
+    actions, full = [], []
+    while True:
+        action = policy.act({k: np.asarray(v, dtype=np.float64) for k, v in obs.items()}).astype(np.float32)
+        outcome = cheese.step(action)
+        obs = outcome.observation
+        actions.append(action)
+        full.append((outcome, cheese.milestones_reached(), cheese.first_missing_milestone()))
+        if outcome.terminated or outcome.truncated:
+            break
+    assert outcome.success and max(o.observation["phi_grasp"][0] for o, _, _ in full) == 1.0
+    cheese.reset(spec)
+    chunk = 8
+    for t, action in enumerate(actions):
+        observed = t % chunk == chunk - 1
+        outcome = cheese.step(action, observe=observed)
+        expected, reached, missing = full[t]
+        assert (outcome.reward, outcome.success, outcome.terminated, outcome.info) == (
+            expected.reward, expected.success, expected.terminated, expected.info), t
+        assert (cheese.milestones_reached(), cheese.first_missing_milestone()) == (reached, missing), t
+        if not observed:
+            assert outcome.observation is None
+        got = outcome.observation if observed else (cheese.observe() if t == len(actions) - 1 else None)
+        for name, value in (got or {}).items():
+            assert np.array_equal(value, expected.observation[name]), f"{name} differs at step {t}"
+
+
 # ---- episode keys ---------------------------------------------------------------------------------
 
 

@@ -233,3 +233,27 @@ def test_slide_toward() -> None:
     probe.boxes["plate_1"] = box((0.0, 0.11, 0.91))
     tracker.update(probe)
     assert tracker.reached[2]
+
+
+def test_latch_only_updates_latch_like_full_ones() -> None:
+    """A step nobody observes evaluates only the milestones not reached yet: the same latching,
+    stage and m*, and the current flags it skipped are filled in on demand."""
+    full, probe = _pick_place_scene()
+    lazy = MilestoneTracker(full.plan)
+    lazy.start(probe)
+    probe.eef_pos = np.array([0.0, 0.0, 0.93])  # at the bowl, grasping it
+    probe.contacts["bowl_1"] = (True, True, True)
+    for tracker in (full, lazy):
+        tracker.update(probe, latch_only=tracker is lazy)
+    probe.boxes["bowl_1"] = box((0.0, 0.0, 1.0))  # lifted
+    probe.eef_pos = np.array([0.5, 0.0, 1.2])  # reached(bowl_1) stops holding; it stays latched
+    for tracker in (full, lazy):
+        tracker.update(probe, latch_only=tracker is lazy)
+    assert lazy.reached.tolist() == full.reached.tolist() and lazy.stage == full.stage
+    assert lazy.first_missing() == full.first_missing() == "above(bowl_1,plate_1)"
+    with pytest.raises(RuntimeError, match="refresh"):
+        lazy.tensors()
+    assert lazy.refresh(probe).tolist() == full.current.tolist()
+    assert not lazy.current[0], "the skipped flag is the state now, not the latched one"
+    for name, value in full.tensors().items():
+        assert np.array_equal(lazy.tensors()[name], value), name

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+import pytest
 
 from services.env_worker import signals as sig
 
@@ -158,3 +159,29 @@ def test_pure_helpers() -> None:
     specs = {s.name: s for s in sig.signal_specs()}
     assert all(s.privileged and s.dtype == "float32" for s in specs.values())
     assert set(sig.zero_signals()) == set(specs)
+
+
+def test_tracked_steps_keep_the_state_of_computed_ones() -> None:
+    """Steps that only track (no tensors) leave the grasp reference and the last end-effector
+    position where computing every step would: the next computed signals are the same."""
+    model, data = _pinch_state(0.04)
+    every, tracked = sig.SignalTracker(_geoms(model)), sig.SignalTracker(_geoms(model))
+    path = [np.array([0.01 * k, 0.0, 0.002 * k * k]) for k in range(6)]
+    for k, eef in enumerate(path):
+        x = _inputs(model, data, eef, np.array([0.02, 0.0, 0.0]))
+        expected = every.compute(x)
+        bare = sig.read_contacts(model, data, forces=False)  # what a step that builds no observation reads
+        tracked.track(bare, x.object_geoms, x.object_pos, x.eef_pos, x.eef_mat)
+    got = tracked.tensors(x)  # observed only now
+    for name, value in expected.items():
+        assert np.array_equal(got[name], value), name
+    assert got["phi_object_gripper_drift"][0] > 0.0 and got["phi_eef_motion"][3:].any()
+
+
+def test_contacts_without_forces_name_the_same_pairs() -> None:
+    model, data = _pinch_state(0.04)
+    full, bare = sig.read_contacts(model, data), sig.read_contacts(model, data, forces=False)
+    assert np.array_equal(full.geom1, bare.geom1) and np.array_equal(full.geom2, bare.geom2)
+    assert bare.force.shape == (0, 3) and bare.normal.shape == (0,), "no forces were read"
+    with pytest.raises(IndexError):
+        sig.force_on(bare, np.array([_gid(model, "left")]), np.array([_gid(model, "obj")]))

@@ -17,10 +17,11 @@ rows
                ``c`` lanes each run episodes back to back on one session with ``run_episode``
   stack-off    the same stack with batching (``ZETTA_MAX_BATCH=1``) and resource sharing
                (``ZETTA_RESOURCE_SHARING=false``: every session compiles its own scene) off
-  limit        one process per core, no infrastructure, no policy: reset, then ``--max-steps``
-               steps of the fast step path (``FastStepper.step``) with fixed random actions
-  limit-obs    the same with the slot's step (fast path plus the canonical observation,
-               milestones and signals that a policy and the critics read)
+  limit        one process per core, no infrastructure, no policy: reset, then the actions the
+               policy took in the naive episodes through the fast step path (``FastStepper.step``)
+  limit-obs    the same with the slot's step as a chunked policy needs it: milestones, success
+               and the signals' state every step, the canonical observation the policy reads
+               after each action chunk
 
     zetta bench rollout                          # the full sweep (10-25 minutes on 2 shared cores)
     zetta bench rollout --concurrency 1,4 --baseline-concurrency 2 --episodes 4 --max-steps 16 \
@@ -367,11 +368,12 @@ def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
 
 
 def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any,
-                replays: Sequence[Replay] = ()) -> None:
+                replays: Sequence[Replay] = (), chunk: int = 8) -> None:
     """One core's worth of stepping with no infrastructure: reset, an episode's actions, repeat.
 
     ``kind`` "fast": ``FastStepper.step`` on the slot's env (the fastest env path); "obs": the
-    slot's own step (fast path plus canonical observation, milestones and signals). ``replays``
+    slot's own step (fast path plus milestones and signal state every step, and the canonical
+    observation after every ``chunk`` actions, where a policy executing chunks reads it). ``replays``
     are the episodes to step, in turn from the ``seed``-th (the policy's recorded actions in the
     sweep: the same contact-rich physics the stacks step); none: :func:`random_replays`. Every
     reset replays the settle steps (no settled snapshot is reused), as the first reset of a key
@@ -404,8 +406,8 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
             for a in actions:
                 stepper.step(a.astype(np.float64))
         else:
-            for a in actions:
-                slot.step(a, render=False)
+            for i, a in enumerate(actions):
+                slot.step(a, observe=i % chunk == chunk - 1 or i == len(actions) - 1)
         episodes.append((len(actions), time.perf_counter() - t))
         k += 1
     out.put({"start": start, "end": time.time(), "cpu": time.process_time() - cpu0, "episodes": episodes})
@@ -414,14 +416,15 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
 
 
 def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, log: Log,
-              replays: Sequence[Replay] = ()) -> Row:
+              replays: Sequence[Replay] = (), chunk: int = 8) -> Row:
     """``procs`` processes stepping at once; aggregate over the span from the first start to the last end."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
     barrier = ctx.Barrier(procs + 1)
     out = ctx.Queue()
-    children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, barrier, out, replays))
+    children = [ctx.Process(target=limit_child,
+                            args=(kind, task, max_steps, seconds, i + 1, barrier, out, replays, chunk))
                 for i in range(procs)]
     for c in children:
         c.start()
@@ -822,7 +825,7 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
         else "fixed random actions (no naive episode ran to record the policy's)")
     log(f"limit rows step {res.limit_actions}")
     cores = args.limit_processes or os.cpu_count() or 1
-    limits = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays)
+    limits = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
               for kind in ("fast", "obs")]
     slots = -(-max(args.concurrency) // args.env_workers)
     profile_c = args.profile_concurrency or (16 if 16 in args.concurrency else max(args.concurrency))
@@ -835,7 +838,7 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
         off = run_stack(StackSpec("stack-off", args.env_workers, off_slots, args.model,
                                   {"ZETTA_MAX_BATCH": "1", "ZETTA_RESOURCE_SHARING": "false"}),
                         args.baseline_concurrency, args.episodes, args.task, args.max_steps, log, res.failures)
-    limits_after = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays)
+    limits_after = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
                     for kind in ("fast", "obs")]
     run_naive(rows, policy, range(fast_half, args.naive_fast_episodes), args.task, args.max_steps, True, log)
     run_naive(rows, policy, range(half, args.naive_episodes), args.task, args.max_steps, False, log)

@@ -56,7 +56,8 @@ class StepOutcome:
     are rendered only when an observation that carries them is needed: see rendering.py).
     """
 
-    observation: dict[str, np.ndarray]
+    #: None for a step taken with ``observe=False``; :meth:`Slot.observe` builds it if needed.
+    observation: dict[str, np.ndarray] | None
     reward: float
     terminated: bool
     truncated: bool
@@ -151,11 +152,13 @@ class Slot(ABC):
         """Start the episode keyed by ``spec``; returns the canonical observation and the instruction."""
 
     @abstractmethod
-    def step(self, action: np.ndarray, render: bool = True) -> StepOutcome:
+    def step(self, action: np.ndarray, render: bool = True, observe: bool = True) -> StepOutcome:
         """Execute one action that the caller already checked against the family's action spec.
 
-        ``render=False`` skips the camera images of this step's observation (e.g. on all but the
-        last action of a chunk); :meth:`observe` renders them later if they are asked for.
+        ``render=False`` skips the camera images of this step's observation; ``observe=False``
+        skips the observation altogether (e.g. on all but the last action of a chunk: only the
+        reward, success, milestones and the signals' state are kept up to date). :meth:`observe`
+        builds what was skipped if it is asked for before the next step.
         """
 
     def finish_video(self) -> str:
@@ -472,7 +475,9 @@ class EpisodeSlot(Slot):
     """Episode bookkeeping shared by families: step counting, truncation, end-of-episode guard.
 
     Subclasses implement the simulator side in :meth:`_start` and :meth:`_advance` and return raw
-    observations; this class normalizes them against the schema.
+    observations; this class normalizes them against the schema. A subclass whose observation
+    costs much more than its bookkeeping may return none from ``_advance`` for a step that is not
+    observed, and build it in :meth:`_raw_observation` when it is asked for.
 
     Camera images and videos come from ``renderer`` (rendering.SlotRenderer), here and not in the
     subclasses, so frames are rendered only when an observation or a video frame needs them:
@@ -482,7 +487,9 @@ class EpisodeSlot(Slot):
 
     def __init__(self, schema: Mapping[str, TensorSpec], renderer: rendering.SlotRenderer | None = None) -> None:
         self._schema = schema
+        #: The raw observation of the current state; None while none was built for it.
         self._raw: Mapping[str, Any] | None = None
+        self._running = False  # an episode was started (reset) and the slot is open
         self._step = 0
         self._max_steps = 0
         self._over = False
@@ -499,8 +506,17 @@ class EpisodeSlot(Slot):
         """Reset the simulator: raw observation, the task's instruction and the step budget."""
 
     @abstractmethod
-    def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
-        """Execute one action: raw observation, reward, success, numeric diagnostics."""
+    def _advance(self, action: np.ndarray, observe: bool) -> tuple[Mapping[str, Any] | None, float, bool,
+                                                                    dict[str, float]]:
+        """Execute one action: raw observation, reward, success, numeric diagnostics.
+
+        With ``observe`` False the raw observation may be None; :meth:`_raw_observation` then
+        builds it for the current state if it is asked for after all.
+        """
+
+    def _raw_observation(self) -> Mapping[str, Any]:
+        """The raw observation of the current state, after an ``_advance`` that returned none."""
+        raise NotImplementedError(f"{type(self).__name__}._advance returned no observation but cannot build one")
 
     @abstractmethod
     def _release(self) -> None:
@@ -509,32 +525,34 @@ class EpisodeSlot(Slot):
     def reset(self, spec: ResetSpec) -> tuple[dict[str, np.ndarray], str]:
         self._check_open()
         self.finish_video()
-        self._raw, self._images, self._video_path = None, None, ""
+        self._raw, self._images, self._video_path, self._running = None, None, "", False
         raw, instruction, max_steps = self._start(spec)
         raw = self._with_images(raw, render=True)
         self._raw, self._step, self._max_steps, self._over = raw, 0, max_steps, False
+        self._running = True
         if spec.video_path:
             self._start_video(spec.video_path)
         return normalize_observation(raw, self._schema), spec.instruction or instruction
 
-    def step(self, action: np.ndarray, render: bool = True) -> StepOutcome:
+    def step(self, action: np.ndarray, render: bool = True, observe: bool = True) -> StepOutcome:
         self._check_open()
-        if self._raw is None:
+        if not self._running:
             raise EpisodeError("no episode is running: reset the slot first")
         if self._over:
             raise EpisodeError(f"the episode ended after {self._step} steps: reset the slot first")
-        raw, reward, success, info = self._advance(action)
+        raw, reward, success, info = self._advance(action, observe)
         self._images = None
         if self._video is not None:
             self._record_frame()
-        raw = self._with_images(raw, render)
+        if raw is not None:
+            raw = self._with_images(raw, render and observe)
         self._raw = raw
         self._step += 1
         truncated = self._step >= self._max_steps
         self._over = success or truncated
         video_path = self.finish_video() if self._over and self._video is not None else ""
         return StepOutcome(
-            observation=normalize_observation(raw, self._schema, optional=self._image_names),
+            observation=normalize_observation(raw, self._schema, optional=self._image_names) if observe else None,
             reward=float(reward),
             terminated=success,
             truncated=truncated,
@@ -545,8 +563,10 @@ class EpisodeSlot(Slot):
 
     def observe(self) -> dict[str, np.ndarray]:
         self._check_open()
-        if self._raw is None:
+        if not self._running:
             raise EpisodeError("no episode is running: reset the slot first")
+        if self._raw is None:
+            self._raw = self._with_images(self._raw_observation(), render=False)
         if any(name not in self._raw for name in self._image_names):
             self._raw = self._with_images(self._raw, render=True)
         return normalize_observation(self._raw, self._schema)
@@ -596,7 +616,7 @@ class EpisodeSlot(Slot):
         if not self._closed:
             self._closed = True
             self.finish_video()
-            self._raw, self._images = None, None
+            self._raw, self._images, self._running = None, None, False
             self._release()
 
     def _check_open(self) -> None:

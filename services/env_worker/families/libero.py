@@ -311,6 +311,8 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
         self._env: Any = None
         self._task = -1
         self._state: TaskState | None = None
+        #: robosuite's observation of the last step, for a canonical one built later (observe=False).
+        self._last_obs: Mapping[str, Any] = {}
 
     def switch_task(self, index: int) -> None:
         """Make the slot's env the one of task ``index`` (different tasks are different scenes)."""
@@ -359,26 +361,32 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
             if start is not None:
                 settled.store(env, key, settled.capture(env, start, obs))
         self._state.start()  # milestones and signals start after the settle steps
-        raw = self._observation(obs, None)
-        return raw, self._family.instruction(index, env), self._family.config["max_steps"]
+        self._state.advance(None)
+        return self._canonical(obs), self._family.instruction(index, env), self._family.config["max_steps"]
 
-    def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
+    def _advance(self, action: np.ndarray, observe: bool) -> tuple[Mapping[str, Any] | None, float, bool,
+                                                                    dict[str, float]]:
         stepper = make_stepper(self._env, self._family.config["fast_step"])  # env.step or its lean twin
         with _predicates_memoized(self._env):  # the reward, the milestones and success share them
             obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
-            raw = self._observation(obs, action)
+            self._state.advance(action)
             success = bool(self._env._check_success())  # the benchmark's own predicate, nothing else
-        return raw, float(reward), success, self._state.info()
+        self._last_obs = obs
+        return self._canonical(obs) if observe else None, float(reward), success, self._state.info()
+
+    def _raw_observation(self) -> Mapping[str, Any]:
+        return self._canonical(self._last_obs)
 
     def _release(self) -> None:
         if self._env is not None:
             self._family.park(self._task, self._env)
             self._env = None
 
-    def _observation(self, obs: Mapping[str, Any], action: np.ndarray | None) -> dict[str, Any]:
-        """Canonical raw observation: robot, task stage, milestones and signals (task_state.py)."""
+    def _canonical(self, obs: Mapping[str, Any]) -> dict[str, Any]:
+        """Canonical raw observation of the state the task state last advanced to: robot, task
+        stage, milestones and signals (task_state.py)."""
         cfg = self._family.config
         raw = robot_and_camera_obs(obs, cfg["cameras"])
-        raw.update(self._state.observe(action))
+        raw.update(self._state.observation())
         raw["object_state"] = zero_padded(obs["object-state"], cfg["object_state_dim"], "object-state")
         return raw

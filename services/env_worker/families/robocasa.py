@@ -514,7 +514,7 @@ class _RobocasaSlot(EpisodeSlot):
         self._layout_style = (float(meta.get("layout_id", -1)), float(meta.get("style_id", -1)))
         return self._observation(obs), str(meta.get("lang", "")), self._family.config["max_steps"]
 
-    def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
+    def _advance(self, action: np.ndarray, observe: bool) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
         obs, reward, _, _ = self._env.step(np.asarray(action, dtype=np.float64))
         raw = self._observation(obs)
         success = bool(self._env._check_success())

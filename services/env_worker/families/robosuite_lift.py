@@ -387,6 +387,10 @@ class _RobosuiteSlot(TaskProgressSlot, EpisodeSlot):
         self._target = getattr(env, target_attr) if target_attr else None
         self._target_geoms = geom_ids(env, self._target.contact_geoms) if self._target else None
         self._lift_target = np.zeros(3)
+        #: robosuite's observation of the last step and whether it grasps, for a canonical one
+        #: built later (observe=False).
+        self._last_obs: Mapping[str, Any] = {}
+        self._grasped = 0.0
         # Milestones and signals (Lift as up(cube), Stack as on(cubeA, cubeB)); success stays _check_success.
         self._state = for_robosuite(env, object_attr, target_attr)
 
@@ -402,16 +406,27 @@ class _RobosuiteSlot(TaskProgressSlot, EpisodeSlot):
         self._lift_target = self._object_pose()[0] + np.array([0.0, 0.0, _LIFT_TARGET_HEIGHT])
         self._state.start()
         self._state.lift_target = self._lift_target
+        self._state.advance(None)
+        self._grasped = self._grasping()
         name = self._family.config["env_name"]
         instruction = "lift the cube" if name == "Lift" else "stack the red cube on the green cube"
-        return self._observation(obs), instruction, self._family.config["max_steps"]
+        return self._canonical(obs), instruction, self._family.config["max_steps"]
 
-    def _advance(self, action: np.ndarray) -> tuple[Mapping[str, Any], float, bool, dict[str, float]]:
+    def _advance(self, action: np.ndarray, observe: bool) -> tuple[Mapping[str, Any] | None, float, bool,
+                                                                    dict[str, float]]:
         stepper = make_stepper(self._env, self._family.config["fast_step"])  # env.step or its lean twin
         obs, reward, _, _ = stepper.step(np.asarray(action, dtype=np.float64))
-        raw = self._observation(obs, action)
+        self._state.advance(action)
         success = bool(self._env._check_success())
-        return raw, float(reward), success, {**self._state.info(), "grasped": float(raw["task_grasped"][0])}
+        self._last_obs, self._grasped = obs, self._grasping()
+        return (self._canonical(obs) if observe else None, float(reward), success,
+                {**self._state.info(), "grasped": self._grasped})
+
+    def _raw_observation(self) -> Mapping[str, Any]:
+        return self._canonical(self._last_obs)
+
+    def _grasping(self) -> float:
+        return float(is_grasping(self._env, self._object.contact_geoms))
 
     def _release(self) -> None:
         self._family.park(self._env)
@@ -419,9 +434,10 @@ class _RobosuiteSlot(TaskProgressSlot, EpisodeSlot):
     def _object_pose(self) -> tuple[np.ndarray, np.ndarray]:
         return body_pose(self._env, self._env.sim.model.body_name2id(self._object.root_body))
 
-    def _observation(self, obs: Mapping[str, Any], action: np.ndarray | None = None) -> dict[str, Any]:
+    def _canonical(self, obs: Mapping[str, Any]) -> dict[str, Any]:
+        """Canonical raw observation of the state the task state last advanced to."""
         raw = robot_and_camera_obs(obs, self._family.config["cameras"])
-        raw.update(self._state.observe(action))  # stage, milestones, signals; task_* refined below
+        raw.update(self._state.observation())  # stage, milestones, signals; task_* refined below
         pos, quat = self._object_pose()
         if self._target is None:
             target = self._lift_target.copy()
@@ -435,7 +451,7 @@ class _RobosuiteSlot(TaskProgressSlot, EpisodeSlot):
             task_target_pos=target,
             task_object_bbox=geoms_bbox(self._env, self._object_geoms),
             task_target_bbox=target_bbox,
-            task_grasped=np.array([float(is_grasping(self._env, self._object.contact_geoms))]),
+            task_grasped=np.array([self._grasped]),
             object_state=zero_padded(obs["object-state"], self._family.config["object_state_dim"], "object-state"),
         )
         return raw

@@ -292,6 +292,8 @@ class TaskState:
         self.signals = sig.SignalTracker(self._geoms)
         self._eef_site = int(env.robots[0].eef_site_id)
         self._contacts = sig.Contacts.empty()
+        self._forces = False  # whether _contacts holds the forces too
+        self._action: np.ndarray | None = None  # the last executed action (None after a reset)
         self._sets: dict[str, frozenset[int]] = {}
         self._boxes: dict[str, np.ndarray] = {}  # boxes of the state being observed
         self._obstacles = Obstacles(model, ROBOT_PREFIXES)
@@ -308,22 +310,45 @@ class TaskState:
         self.signals.reset()
         self._started = False
 
-    def observe(self, action: np.ndarray | None) -> dict[str, np.ndarray]:
-        """Task tensors of the current state; ``action`` is the one just executed (None at reset)."""
+    def advance(self, action: np.ndarray | None) -> None:
+        """What every step must do, observed or not: latch milestones and the signals' state.
+
+        ``action`` is the one just executed (None at reset). The tensors of this state come from
+        :meth:`observation`, called only where an observation is read (the last step of an action
+        chunk without a harness), since building them costs several times what the latching does.
+        """
         model, data = _raw(self.env)
-        self._contacts = sig.read_contacts(model, data, self._geoms.all_geoms)  # only the robot's are read
+        # Which robot geoms touch what; forces are read only if this state is observed.
+        self._contacts = sig.read_contacts(model, data, self._geoms.all_geoms, forces=False)
+        self._forces = False
         self._boxes = {}
+        self._action = action
         if not self._started:
             self.tracker.start(self)
             self._started = True
         else:
-            self.tracker.update(self)
+            self.tracker.update(self, latch_only=True)
+        geoms, _, pos = self._subject(model, data)
+        self.signals.track(self._contacts, geoms, pos, self.eef(), self._eef_mat(data))
+        self._grasped = float(self.signals.grasping)
+
+    def observation(self) -> dict[str, np.ndarray]:
+        """Task tensors of the state the last :meth:`advance` reached."""
+        model, data = _raw(self.env)
+        if not self._forces:
+            self._contacts = sig.read_contacts(model, data, self._geoms.all_geoms)  # only the robot's are read
+            self._forces = True
+        self.tracker.refresh(self)
         out = self._stage_tensors(model, data)
         out.update(self.tracker.tensors())
-        out.update(self._signals(model, data, action, out))
+        out.update(self._signals(model, data, self._action, out))
         out["task_grasped"] = out["phi_grasp"].copy()
-        self._grasped = float(out["phi_grasp"][0])
         return out
+
+    def observe(self, action: np.ndarray | None) -> dict[str, np.ndarray]:
+        """One step observed: :meth:`advance` then :meth:`observation`."""
+        self.advance(action)
+        return self.observation()
 
     def names(self) -> list[str]:
         return self.plan.names
@@ -437,17 +462,25 @@ class TaskState:
             moved = self._moved[key] = frozenset(subtree(model, body)) if body is not None else frozenset()
         return self._obstacles.boxes(model, data, moved, obj, target)
 
-    def _signals(self, model: Any, data: Any, action: np.ndarray | None, stage: Mapping[str, np.ndarray]
-                 ) -> dict[str, np.ndarray]:
+    def _subject(self, model: Any, data: Any) -> tuple[frozenset[int], int | None, np.ndarray]:
+        """Collision geoms, body and position of what the current stage moves (the object, or the
+        handle of an articulation); no geoms, None and zeros when the stage names nothing."""
         current, template = self._current()
-        geoms: frozenset[int] = frozenset()
-        body = None
         if current is not None and template == "articulate":
             art = self.articulations[current.subject]
-            geoms, body = self._geom_set(art.name + ".handle", art.moving_geoms), art.body
-        elif current is not None and current.subject in self.parts:
+            box = art.handle_bbox(model, data)
+            return self._geom_set(art.name + ".handle", art.moving_geoms), art.body, (box[:3] + box[3:]) / 2
+        if current is not None and current.subject in self.parts:
             part = self.parts[current.subject]
-            geoms, body = self._geom_set(part.name, part.geoms), part.body_id
+            return self._geom_set(part.name, part.geoms), part.body_id, part.pose(model, data)[0]
+        return frozenset(), None, np.zeros(3)
+
+    def _eef_mat(self, data: Any) -> np.ndarray:
+        return np.array(data.site_xmat[self._eef_site]).reshape(3, 3)
+
+    def _signals(self, model: Any, data: Any, action: np.ndarray | None, stage: Mapping[str, np.ndarray]
+                 ) -> dict[str, np.ndarray]:
+        geoms, body, _ = self._subject(model, data)
         velocity = sig.body_velocity(model, data, body) if body is not None else np.zeros(6)
         commanded = np.zeros(3)
         if action is not None:
@@ -458,7 +491,7 @@ class TaskState:
             )
         robot = self.env.robots[0]
         finger_qpos = np.array(data.qpos[robot._ref_gripper_joint_pos_indexes])
-        return self.signals.compute(
+        return self.signals.tensors(
             sig.SignalInputs(
                 contacts=self._contacts,
                 object_geoms=geoms,
@@ -466,7 +499,7 @@ class TaskState:
                 object_pos=stage["task_object_pos"],
                 object_vel=velocity,
                 eef_pos=self.eef(),
-                eef_mat=np.array(data.site_xmat[self._eef_site]).reshape(3, 3),
+                eef_mat=self._eef_mat(data),
                 finger_qpos=finger_qpos,
                 commanded=commanded,
             )
