@@ -7,6 +7,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from services.common.config import EnvReader
+from services.env_worker.policy_client import InferHold
+
+#: Longest wait of a held inference request (policy_client.py); docs/throughput.md measures it.
+DEFAULT_INFER_HOLD_MS = 200.0
 
 
 @dataclass(frozen=True)
@@ -33,6 +37,9 @@ class EnvWorkerConfig:
     #: The critic service (ZETTA_CRITIC_ADDR, host:port) that resets naming a harness by registry
     #: reference load it from; empty: only harness_dir packages can run.
     critic_address: str = ""
+    #: How inference requests wait for each other to leave as one batch (ZETTA_INFER_HOLD_MS,
+    #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
+    infer_hold: InferHold = InferHold()
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -62,6 +69,10 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
+            infer_hold=InferHold(
+                max_ms=env.float("ZETTA_INFER_HOLD_MS", DEFAULT_INFER_HOLD_MS, minimum=0.0),
+                min_busy=env.int("ZETTA_INFER_HOLD_MIN_BUSY", InferHold.min_busy, minimum=1),
+            ),
         )
         env.finish("env worker")
         return cfg

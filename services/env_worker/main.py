@@ -55,7 +55,9 @@ async def main() -> None:
     if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
         threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families)
-    policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms)
+    policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms, cfg.infer_hold,
+                          busy=lambda: table.activity.busy)
+    table.activity.listen(policy.slot_finished)
     servicer = EnvWorkerServicer(table, policy, video_dir=cfg.video_dir, resource_sharing=cfg.resource_sharing,
                                  critic_address=cfg.critic_address)
     membership: Membership | None = None

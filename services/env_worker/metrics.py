@@ -18,6 +18,15 @@ RESET_SECONDS = Histogram(
     buckets=LATENCY_BUCKETS,
 )
 SLOTS = Gauge("zetta_env_slots", "Slots of this worker by state.", ["state"])
+INFER_CALL_ITEMS = Histogram(
+    "zetta_env_infer_call_items", "Inference requests sent together in one Infer call to a policy worker.",
+    buckets=(1, 2, 4, 8, 16, 32, 64, 128),
+)
+INFER_HOLD_SECONDS = Histogram(
+    "zetta_env_infer_hold_seconds",
+    "How long the oldest request of an Infer call waited in the env worker for others to join it.",
+    buckets=LATENCY_BUCKETS,
+)
 POLICY_ERRORS = Counter("zetta_env_policy_errors_total", "Failed inference requests, by status code.", ["code"])
 FRAMES = Counter(
     "zetta_env_frames_rendered_total",

@@ -4,6 +4,14 @@ Every inference request a worker's slots make in the same event-loop turn travel
 call; the policy worker then batches those with other workers' requests. Observations are cut
 down to the tensors the model reads (learned once from ListModels) before they are encoded, so
 images a state-based policy ignores are neither serialized nor sent.
+
+Holding (:class:`InferHold`): a policy answers a batch of many requests for little more than the
+cost of one on a CPU (and on a GPU), but slots in a closed loop ask one at a time, a few
+milliseconds apart, so requests sent as they come make batches of one or two. While at least
+``min_busy`` of this worker's slots are still stepping, the worker's cores are busy anyway, and a
+request that waits for company costs no throughput: it is held until fewer slots are busy (they
+have finished their chunks and asked too), or for ``max_ms`` at most, and the held requests leave
+in one call. A lone session (fewer busy slots than ``min_busy``) is never held.
 """
 
 from __future__ import annotations
@@ -11,7 +19,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import grpc
@@ -25,16 +33,28 @@ from zetta.codec import encode
 from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
+@dataclass(frozen=True)
+class InferHold:
+    """When requests wait for each other (module doc); ``max_ms`` 0 sends each loop turn's at once."""
+
+    max_ms: float = 0.0
+    min_busy: int = 2
+
+
 @dataclass
 class _Pending:
     item: policy_worker_pb2.InferItem
     future: asyncio.Future[policy_worker_pb2.InferOutput]
+    arrival: float
 
 
 class PolicyClient:
     """Sends inference items to the policy workers and routes answers back by token."""
 
-    def __init__(self, addresses: Sequence[str], default_timeout_ms: int) -> None:
+    def __init__(self, addresses: Sequence[str], default_timeout_ms: int, hold: InferHold = InferHold(),
+                 busy: Callable[[], int] = lambda: 0) -> None:
+        """``busy``: how many of the worker's slots have work on their threads now; call
+        :meth:`slot_finished` whenever one finishes, so held requests can leave."""
         # round_robin spreads calls over every address a name resolves to (dns:///policy:50071 in
         # Kubernetes), so policy pods added by the autoscaler take load from existing env workers.
         options = [*CHANNEL_OPTIONS, ("grpc.lb_policy_name", "round_robin")]
@@ -43,6 +63,9 @@ class PolicyClient:
         self._rr = itertools.cycle(range(len(self._stubs))) if self._stubs else None
         self._pending: list[_Pending] = []
         self._flush_scheduled = False
+        self._hold = hold
+        self._busy = busy
+        self._hold_timer: asyncio.TimerHandle | None = None
         self._inputs: dict[str, frozenset[str]] = {}
         self._default_timeout_ms = default_timeout_ms
         self._hop = HOP_LATENCY.labels("env_worker", "policy_infer")
@@ -76,17 +99,45 @@ class PolicyClient:
         for name, array in observation.items():
             if wanted is None or name in wanted:
                 encode(array, item.observation.tensors[name])
-        fut: asyncio.Future[policy_worker_pb2.InferOutput] = asyncio.get_running_loop().create_future()
-        self._pending.append(_Pending(item, fut))
-        if not self._flush_scheduled:
-            self._flush_scheduled = True
-            asyncio.get_running_loop().call_soon(self._flush)
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[policy_worker_pb2.InferOutput] = loop.create_future()
+        self._pending.append(_Pending(item, fut, loop.time()))
+        self._check_soon()
         return await fut
 
-    def _flush(self) -> None:
+    def slot_finished(self) -> None:
+        """A slot of this worker finished its work: held requests may leave now."""
+        if self._pending:
+            self._check_soon()
+
+    def _check_soon(self) -> None:
+        # At the end of this loop turn, so every request made in it (also by the slot that just
+        # finished a chunk and asks for the next) leaves in the same call.
+        if not self._flush_scheduled:
+            self._flush_scheduled = True
+            asyncio.get_running_loop().call_soon(self._check)
+
+    def _check(self) -> None:
         self._flush_scheduled = False
+        if not self._pending:
+            return
+        hold = self._hold
+        if hold.max_ms > 0 and self._busy() >= hold.min_busy:
+            if self._hold_timer is None:
+                loop = asyncio.get_running_loop()
+                due = self._pending[0].arrival + hold.max_ms / 1000.0
+                self._hold_timer = loop.call_at(due, self._flush)
+            return
+        self._flush()
+
+    def _flush(self) -> None:
+        if self._hold_timer is not None:
+            self._hold_timer.cancel()
+            self._hold_timer = None
         batch, self._pending = self._pending, []
         if batch:
+            metrics.INFER_CALL_ITEMS.observe(len(batch))
+            metrics.INFER_HOLD_SECONDS.observe(asyncio.get_running_loop().time() - batch[0].arrival)
             asyncio.ensure_future(self._send(batch))
 
     async def _send(self, batch: list[_Pending]) -> None:

@@ -43,6 +43,31 @@ class Episode:
     success: bool = False
 
 
+class SlotActivity:
+    """How many of a worker's slots have work on their threads right now (a step, a reset).
+
+    The policy client holds its inference requests while enough slots are still busy, so that
+    they leave together as one batch (services/env_worker/policy_client.py); it is told when a slot
+    finishes. Only the event loop touches it, so a plain counter suffices.
+    """
+
+    def __init__(self) -> None:
+        self.busy = 0
+        self._listeners: list[Callable[[], None]] = []
+
+    def listen(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` (on the event loop) whenever a slot finishes its work."""
+        self._listeners.append(callback)
+
+    def enter(self) -> None:
+        self.busy += 1
+
+    def leave(self) -> None:
+        self.busy -= 1
+        for callback in self._listeners:
+            callback()
+
+
 @dataclass
 class BoundSlot:
     """A slot bound to a session."""
@@ -58,10 +83,16 @@ class BoundSlot:
     busy: asyncio.Lock = field(default_factory=asyncio.Lock)
     #: The harness over this slot's episodes (services/env_worker/harness_loop.SlotHarness); None: none.
     harness: Any = None
+    #: The worker's count of busy slots, which ``run`` keeps.
+    activity: SlotActivity = field(default_factory=SlotActivity)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn`` on this slot's pinned thread."""
-        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        self.activity.enter()
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        finally:
+            self.activity.leave()
 
     def require_episode(self) -> Episode:
         """The running episode, or the error that tells the client to reset."""
@@ -92,6 +123,8 @@ class SlotTable:
         self._bound: dict[str, BoundSlot] = {}
         self._groups: dict[str, EnvFamily] = {}
         self._group_lock = threading.Lock()
+        #: Slots with work on their threads now (see SlotActivity).
+        self.activity = SlotActivity()
         metrics.SLOTS.labels("free").set(capacity)
         metrics.SLOTS.labels("bound").set(0)
 
@@ -131,7 +164,7 @@ class SlotTable:
                 out.append(self._bound[sid])
                 continue
             index = self._free.pop()
-            slot = BoundSlot(sid, index, family, family_name, self._executors[index])
+            slot = BoundSlot(sid, index, family, family_name, self._executors[index], activity=self.activity)
             self._bound[sid] = slot
             out.append(slot)
         self._update_gauges()

@@ -836,7 +836,8 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
     if args.baseline_concurrency:
         off_slots = -(-max(args.baseline_concurrency) // args.env_workers)
         off = run_stack(StackSpec("stack-off", args.env_workers, off_slots, args.model,
-                                  {"ZETTA_MAX_BATCH": "1", "ZETTA_RESOURCE_SHARING": "false"}),
+                                  {"ZETTA_MAX_BATCH": "1", "ZETTA_INFER_HOLD_MS": "0",
+                                   "ZETTA_RESOURCE_SHARING": "false"}),
                         args.baseline_concurrency, args.episodes, args.task, args.max_steps, log, res.failures)
     limits_after = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
                     for kind in ("fast", "obs")]

@@ -1,0 +1,144 @@
+"""The env worker's inference hold: requests wait for each other while the worker's slots are busy.
+
+A real policy worker servicer (its batching scheduler, the scripted policy) serves on loopback; the
+env worker's real PolicyClient sends to it, and a SlotActivity stands for the worker's slots.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+
+import grpc
+import numpy as np
+import pytest
+
+from services.env_worker.policy_client import InferHold, PolicyClient
+from services.env_worker.slots import SlotActivity
+from services.policy_worker.models.base import load_model
+from services.policy_worker.scheduler import BatchScheduler, SchedulerConfig
+from services.policy_worker.servicer import PolicyWorkerServicer
+from zetta.v1 import policy_worker_pb2_grpc
+
+MODEL = "scripted-pick-place"
+OBS = {
+    "robot0_eef_pos": np.array([0.0, 0.0, 1.0], np.float32),
+    "robot0_gripper_qpos": np.array([0.04, -0.04], np.float32),
+    "task_object_bbox": np.array([0.1, 0.0, 0.9, 0.12, 0.02, 0.95], np.float32),
+    "task_target_bbox": np.array([0.3, 0.0, 0.9, 0.35, 0.05, 0.92], np.float32),
+    "task_grasped": np.zeros(1, np.float32),
+}
+
+
+class Batches:
+    """The scheduler's observer: the size of every batch the policy ran."""
+
+    def __init__(self) -> None:
+        self.sizes: list[int] = []
+
+    def on_batch(self, model: str, size: int, compute_seconds: float) -> None:
+        self.sizes.append(size)
+
+    def on_queue_wait(self, model: str, seconds: float) -> None:
+        pass
+
+    def on_queue_depth(self, model: str, depth: int) -> None:
+        pass
+
+    def on_reject(self, model: str, reason: str) -> None:
+        pass
+
+
+@pytest.fixture
+async def policy_worker() -> AsyncIterator[tuple[str, Batches]]:
+    models = {MODEL: load_model(MODEL)}
+    batches = Batches()
+    # A long queue delay and no early dispatch: a batch holds exactly what one Infer call brought.
+    config = SchedulerConfig(max_batch=32, max_queue_delay=0.0, early_dispatch=False)
+    scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), config, batches)
+    server = grpc.aio.server()
+    policy_worker_pb2_grpc.add_PolicyWorkerServiceServicer_to_server(
+        PolicyWorkerServicer(models, MODEL, scheduler, 5000), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    try:
+        yield f"127.0.0.1:{port}", batches
+    finally:
+        await server.stop(None)
+        await scheduler.drain()
+
+
+def _client(address: str, hold: InferHold, activity: SlotActivity) -> PolicyClient:
+    client = PolicyClient([address], 5000, hold, busy=lambda: activity.busy)
+    activity.listen(client.slot_finished)
+    return client
+
+
+async def _ask_apart(client: PolicyClient, n: int, gap: float) -> list[asyncio.Task]:
+    """``n`` requests, one every ``gap`` seconds (each in its own loop turn), as slots finishing
+    their chunks at different times ask."""
+    tasks = []
+    for i in range(n):
+        tasks.append(asyncio.ensure_future(client.infer(f"slot-{i}", MODEL, OBS, "put it in", 5000)))
+        await asyncio.sleep(gap)
+    return tasks
+
+
+async def test_held_requests_leave_together_when_the_slots_are_done(policy_worker) -> None:
+    address, batches = policy_worker
+    activity = SlotActivity()
+    client = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
+    try:
+        for _ in range(3):  # three other slots are still stepping
+            activity.enter()
+        tasks = await _ask_apart(client, 4, 0.01)
+        await asyncio.sleep(0.05)
+        assert not any(t.done() for t in tasks) and batches.sizes == [], "held while 3 slots are busy"
+        activity.leave()  # 2 busy: still enough to keep the cores working
+        await asyncio.sleep(0.05)
+        assert batches.sizes == []
+        activity.leave()  # 1 busy: the held requests go, in one call, as one batch
+        outputs = await asyncio.wait_for(asyncio.gather(*tasks), 5)
+        assert batches.sizes == [4]
+        assert [o.token for o in outputs] == [f"slot-{i}" for i in range(4)]
+        assert all(o.actions.shape for o in outputs)
+    finally:
+        await client.close()
+
+
+async def test_a_request_is_held_at_most_max_ms(policy_worker) -> None:
+    address, batches = policy_worker
+    activity = SlotActivity()
+    client = _client(address, InferHold(max_ms=150, min_busy=2), activity)
+    try:
+        for _ in range(5):
+            activity.enter()  # these slots never finish within the test
+        start = time.monotonic()
+        tasks = await _ask_apart(client, 3, 0.02)
+        await asyncio.wait_for(asyncio.gather(*tasks), 5)
+        waited = time.monotonic() - start
+        assert batches.sizes == [3]
+        assert 0.14 <= waited < 1.0, waited
+    finally:
+        await client.close()
+
+
+async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) -> None:
+    address, batches = policy_worker
+    activity = SlotActivity()
+    lone = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
+    try:
+        activity.enter()  # one other slot stepping: fewer than min_busy
+        start = time.monotonic()
+        await asyncio.wait_for(lone.infer("lone", MODEL, OBS, "put it in", 5000), 5)
+        assert time.monotonic() - start < 1.0 and batches.sizes == [1]
+        for _ in range(4):
+            activity.enter()
+        off = _client(address, InferHold(max_ms=0), activity)
+        tasks = await _ask_apart(off, 3, 0.02)
+        await asyncio.wait_for(asyncio.gather(*tasks), 5)
+        assert batches.sizes == [1, 1, 1, 1], "holding off: each request leaves in its own loop turn"
+        await off.close()
+    finally:
+        await lone.close()
