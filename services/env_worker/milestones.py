@@ -382,10 +382,11 @@ class MilestoneTracker:
             elif m.kind == "lifted":
                 ok = self._lifted(x, get("bbox", x))
             elif m.kind == "above":
-                box, target = get("bbox", x), get("bbox", y)
-                c = _center(box)
-                inside = bool(np.all(c[:2] >= target[:2] - ABOVE_MARGIN) and np.all(c[:2] <= target[3:5] + ABOVE_MARGIN))
-                ok = inside and self._lifted(x, box)
+                box = get("bbox", x)
+                ok = self._lifted(x, box)  # the target's box (often many geoms) only when it matters
+                if ok:
+                    target, c = get("bbox", y), _center(box)
+                    ok = bool(np.all(c[:2] >= target[:2] - ABOVE_MARGIN) and np.all(c[:2] <= target[3:5] + ABOVE_MARGIN))
             elif m.kind == "toward":
                 start = self._start_dist.get((x, y), 0.0)
                 now = float(np.linalg.norm(_center(get("bbox", x))[:2] - _center(get("bbox", y))[:2]))
