@@ -12,6 +12,7 @@ import json
 import os
 import queue
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +43,23 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     failures: list[str] = []
     spec = bs.StackSpec("stack", env_workers=2, slots=4, model=SCRIPTED)
     url = shared_stack.services["policy-0"].metrics_url
+    limit_calls: list[float] = []
+
+    def limit_now() -> bs.Row:  # stands in for run_limit's processes, which the slow test runs
+        limit_calls.append(time.monotonic())
+        return bs.Row("limit", 1, [bs.Episode(0, False, 8, 0.05)], 0.05)
+
+    pairing = bs.Pairing(2, limit_now)
     stack_rows = await bs._stack_points(shared_stack, spec, [1, 2], episodes=2, task=bs.DEFAULT_TASK, max_steps=8,
-                                        policy_url=url, log=logs.append, gateway_probe=probe, failures=failures)
+                                        policy_url=url, log=logs.append, gateway_probe=probe, failures=failures,
+                                        pairing=pairing)
     assert failures == []
     assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 2), ("stack", 2, 4)]
+    best = max(stack_rows, key=lambda r: r.steps_per_s).concurrency
+    assert len(pairing.results) == 2 == len(limit_calls)
+    for p in pairing.results:  # twice a sweep point's episodes, at the best concurrency
+        assert (p["stack"].mode, p["stack"].concurrency, len(p["stack"].episodes)) == (
+            "stack-paired", best, 2 * max(2, 2 * best))
     for row in stack_rows:
         assert all(e.steps == 8 for e in row.episodes)  # the fixed budget, whatever the policy does
         assert row.batch_mean is not None and row.batch_mean >= 1.0
@@ -72,7 +86,7 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
 
     res = bs.Results({"task": bs.DEFAULT_TASK, "max_steps": 8, "model": SCRIPTED}, bs.machine(), "now", 0.0,
                      rows=[rows["naive"], limit, *stack_rows], inference_ms={1: 2.0, 8: 3.0}, policy_ops=100, chunk=1,
-                     gateway=probe)
+                     gateway=probe, paired=pairing.results)
     table = bench_report.text_table(res)
     assert table.count("\n") == 1 + len(res.rows)
     page = tmp_path / "throughput.md"
@@ -80,11 +94,12 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     written = bench_report.write_docs(res, tmp_path, "zetta bench rollout --test")
     text = page.read_text()
     assert text.startswith("# keep me") and text.rstrip().endswith("## also kept") and "\nold\n" not in text
-    assert "| stack | 2 | 4 |" in text and "Scale-out model" in text
+    assert "| stack | 2 | 4 |" in text and "Scale-out model" in text and "Paired rounds" in text
     assert {p.name for p in written} == {"throughput.md", "throughput-episodes.png", "throughput-steps.png",
                                          "throughput-latency.png", "throughput-cpu.png"}
     assert all(p.stat().st_size > 1000 for p in written)
-    json.dumps(res.to_json(), default=float)  # what --json writes
+    again = bs.Results.from_json(json.loads(json.dumps(res.to_json(), default=float)))  # what --json writes
+    assert bench_report.targets(again) == bench_report.targets(res)
 
 
 def test_targets_judge_the_issue_thresholds() -> None:
@@ -108,6 +123,27 @@ def test_targets_judge_the_issue_thresholds() -> None:
     res.rows[-1].usage = bs.Usage(100.0, 90.0, None, 1.0, cpu_s=70.0)  # and the stack 7: 71%, not met
     (_, measured, ok) = bench_report.targets(res)[1]
     assert ok is False and "CPU cost per step 71%" in measured
+
+
+def test_paired_rounds_judge_the_limit_target_on_their_medians() -> None:
+    """Measured seconds apart, the rounds decide; the sweep's rows (minutes apart) are only quoted."""
+    def row(mode: str, c: int, wall: float, cpu_s: float) -> bs.Row:
+        return bs.Row(mode, c, [bs.Episode(i, False, 100, 1.0) for i in range(10)], wall,
+                      bs.Usage(100.0, 90.0, None, 1.0, cpu_s=cpu_s))  # 1000 steps
+
+    res = bs.Results({}, "m", "now", 0.0, rows=[row("limit", 2, 1.0, 4.0), row("stack", 8, 1.6, 6.0)])
+    (_, measured, ok) = bench_report.targets(res)[1]
+    assert ok is False and "steps/s 62% at concurrency 8" in measured  # the sweep alone: not met
+    # Three rounds: 85/80/90% of the limit's steps/s, CPU shares 82/79/88%: medians 85% and 82%.
+    res.paired = [{"limit": row("limit", 2, 1.0, 4.0), "stack": row("stack-paired", 8, 1 / 0.85, 4.0 / 0.82)},
+                  {"limit": row("limit", 2, 1.0, 4.0), "stack": row("stack-paired", 8, 1 / 0.80, 4.0 / 0.79)},
+                  {"limit": row("limit", 2, 1.0, 4.0), "stack": row("stack-paired", 8, 1 / 0.90, 4.0 / 0.88)}]
+    (_, measured, ok) = bench_report.targets(res)[1]
+    assert ok is True and measured.startswith("paired rounds at concurrency 8, median of 3: steps/s 85%, CPU cost "
+                                              "per step 82%") and "minutes apart" in measured
+    res.paired[0]["stack"].usage.cpu_s = 4.0 / 0.75  # the CPU median falls to 79%: not met
+    assert bench_report.targets(res)[1][2] is False
+    assert bench_report.paired_table(res).count("\n") == 1 + len(res.paired)
 
 
 def test_latency_growth_floor_from_littles_law() -> None:
@@ -138,6 +174,7 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     assert modes == [("naive", 1), ("naive-fast", 1), ("limit", cores), ("limit-obs", cores), ("stack", 1),
                      ("stack", 2), ("stack-off", 2)]
     assert (tmp_path / "throughput-latency.png").exists()
+    assert [(p["limit"]["mode"], p["stack"]["mode"]) for p in data["paired"]] == [("limit", "stack-paired")] * 3
 
 
 @pytest.mark.parametrize("sharing", [True, False])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+import statistics
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -122,27 +123,7 @@ def targets(res: Results) -> list[tuple[str, str, bool | None]]:
         out.append((f"{NAIVE_TARGET:.0f}x naive at concurrency 16", text, ratio >= NAIVE_TARGET))
     else:
         out.append((f"{NAIVE_TARGET:.0f}x naive at concurrency 16", "not measured", None))
-    best, limit, limit_obs = best_stack(res), _row(res, "limit"), _row(res, "limit-obs")
-    if best and limit and limit.steps_per_s:
-        # Both ways must reach the target: steps/s alone flatters a stack whose many threads take a
-        # larger share of a machine other jobs load; CPU cost per step does not depend on that share.
-        share = best.steps_per_s / limit.steps_per_s
-        text = f"steps/s {100 * share:.0f}% at concurrency {best.concurrency}"
-        if limit_obs and limit_obs.steps_per_s:
-            text += f" ({100 * best.steps_per_s / limit_obs.steps_per_s:.0f}% of limit-obs)"
-        if best.cpu_ms_per_step and limit.cpu_ms_per_step:
-            cpu_share = limit.cpu_ms_per_step / best.cpu_ms_per_step
-            share = min(share, cpu_share)
-            text += f"; CPU cost per step {100 * cpu_share:.0f}% of the limit's"
-            if limit_obs and limit_obs.cpu_ms_per_step:
-                text += f" ({100 * limit_obs.cpu_ms_per_step / best.cpu_ms_per_step:.0f}% of limit-obs)"
-            policy_ms = _policy_ms(best)
-            if policy_ms:  # the limit runs no policy: what the stack is at without its inference
-                text += (f"; {100 * limit.cpu_ms_per_step / (best.cpu_ms_per_step - policy_ms):.0f}% without the "
-                         f"policy worker's {policy_ms:.2f} ms")
-        out.append((f"{100 * LIMIT_TARGET:.0f}% of the measured limit", text, share >= LIMIT_TARGET))
-    else:
-        out.append((f"{100 * LIMIT_TARGET:.0f}% of the measured limit", "not measured", None))
+    out.append(_limit_target(res))
     s8, s32 = _row(res, "stack", 8), _row(res, "stack", 32)
     if s8 and s32:
         growth = s32.latency(50) / s8.latency(50)
@@ -156,6 +137,80 @@ def targets(res: Results) -> list[tuple[str, str, bool | None]]:
     else:
         out.append((f"p50 latency growth 8 -> 32 under {LATENCY_GROWTH_TARGET:.0f}x", "not measured", None))
     return out
+
+
+def _limit_target(res: Results) -> tuple[str, str, bool | None]:
+    """The limit target: on the paired rounds' medians when the run has them, else on the sweep's rows.
+
+    Both ways must reach it: steps/s alone flatters a stack whose many threads take a larger share
+    of a machine other jobs load; CPU cost per step does not depend on that share.
+    """
+    name = f"{100 * LIMIT_TARGET:.0f}% of the measured limit"
+    best, limit, limit_obs = best_stack(res), _row(res, "limit"), _row(res, "limit-obs")
+    sweep = ""
+    share: float | None = None
+    if best and limit and limit.steps_per_s:
+        share = best.steps_per_s / limit.steps_per_s
+        sweep = f"steps/s {100 * share:.0f}% at concurrency {best.concurrency}"
+        if limit_obs and limit_obs.steps_per_s:
+            sweep += f" ({100 * best.steps_per_s / limit_obs.steps_per_s:.0f}% of limit-obs)"
+        if best.cpu_ms_per_step and limit.cpu_ms_per_step:
+            cpu_share = limit.cpu_ms_per_step / best.cpu_ms_per_step
+            share = min(share, cpu_share)
+            sweep += f"; CPU cost per step {100 * cpu_share:.0f}% of the limit's"
+            if limit_obs and limit_obs.cpu_ms_per_step:
+                sweep += f" ({100 * limit_obs.cpu_ms_per_step / best.cpu_ms_per_step:.0f}% of limit-obs)"
+            policy_ms = _policy_ms(best)
+            if policy_ms:  # the limit runs no policy: what the stack is at without its inference
+                sweep += (f"; {100 * limit.cpu_ms_per_step / (best.cpu_ms_per_step - policy_ms):.0f}% without the "
+                          f"policy worker's {policy_ms:.2f} ms")
+    paired = paired_shares(res)
+    if paired is not None:
+        steps, cpu, c, n = paired
+        text = (f"paired rounds at concurrency {c}, median of {n}: steps/s {100 * steps:.0f}%, CPU cost per step "
+                f"{100 * cpu:.0f}% of the limit's" + (f"; the sweep's rows, minutes apart: {sweep}" if sweep else ""))
+        return name, text, min(steps, cpu) >= LIMIT_TARGET
+    if share is None:
+        return name, "not measured", None
+    return name, sweep, share >= LIMIT_TARGET
+
+
+def paired_shares(res: Results) -> tuple[float, float, int, int] | None:
+    """Medians over the paired rounds of the stack's steps/s over the limit's and of the limit's CPU
+    per step over the stack's, the concurrency and the number of rounds (None without rounds)."""
+    pairs = [p for p in res.paired if p["limit"].steps_per_s and p["limit"].cpu_ms_per_step
+             and p["stack"].cpu_ms_per_step]
+    if not pairs:
+        return None
+    steps = statistics.median(p["stack"].steps_per_s / p["limit"].steps_per_s for p in pairs)
+    cpu = statistics.median(p["limit"].cpu_ms_per_step / p["stack"].cpu_ms_per_step for p in pairs)
+    return steps, cpu, pairs[0]["stack"].concurrency, len(pairs)
+
+
+PAIRED_HEADER = ("round", "limit steps/s", "stack steps/s", "% of limit", "limit CPU ms/step", "stack CPU ms/step",
+                 "% of limit, CPU", "stack mean batch", "load")
+
+
+def paired_rows(res: Results) -> list[tuple[str, ...]]:
+    """The paired rounds' cells, one tuple per round."""
+    out = []
+    for i, p in enumerate(res.paired, 1):
+        lim, st = p["limit"], p["stack"]
+        out.append((
+            str(i), f"{lim.steps_per_s:.0f}", f"{st.steps_per_s:.0f}",
+            _fmt(100 * st.steps_per_s / lim.steps_per_s if lim.steps_per_s else None, ".0f", "%"),
+            _fmt(lim.cpu_ms_per_step, ".2f"), _fmt(st.cpu_ms_per_step, ".2f"),
+            _fmt(100 * lim.cpu_ms_per_step / st.cpu_ms_per_step if lim.cpu_ms_per_step and st.cpu_ms_per_step
+                 else None, ".0f", "%"),
+            _fmt(st.batch_mean), f"{max(lim.load, st.load):.1f}",
+        ))
+    return out
+
+
+def paired_table(res: Results) -> str:
+    """The paired rounds in Markdown."""
+    lines = ["| " + " | ".join(PAIRED_HEADER) + " |", "|" + "|".join(["---:"] * len(PAIRED_HEADER)) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in paired_rows(res)])
 
 
 def _policy_ms(row: Row) -> float | None:
@@ -377,7 +432,7 @@ Task: LIBERO-Goal `{res.args['task']}`, state only, {res.args['max_steps']} step
 policy `{res.args['model']}` (action chunks executed whole); episode i uses init state i % 50 and seed i // 50.
 
 {markdown_table(res)}
-
+{_paired_section(res)}
 | target | measured | |
 |---|---|---|
 {met}
@@ -397,6 +452,15 @@ all of them at the end of the point (`limit` rows spend
 
 {scale_out_text(res)}
 {END}"""
+
+
+def _paired_section(res: Results) -> str:
+    if not res.paired:
+        return ""
+    c = res.paired[0]["stack"].concurrency
+    return (f"\nPaired rounds: the `limit` row and the stack at its best concurrency ({c}) measured one right "
+            "after the other, the order alternating (what the limit target is judged on):\n\n"
+            f"{paired_table(res)}\n")
 
 
 def write_docs(res: Results, docs: Path, command: str) -> list[Path]:

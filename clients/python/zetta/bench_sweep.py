@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import functools
 import json
 import math
 import os
@@ -670,7 +671,8 @@ class Profiler:
 
 
 def run_stack(spec: StackSpec, concurrency: Sequence[int], episodes: int, task: str, max_steps: int,
-              log: Log, failures: list[str], gateway_probe: dict[str, float] | None = None) -> list[Row]:
+              log: Log, failures: list[str], gateway_probe: dict[str, float] | None = None,
+              pairing: Pairing | None = None) -> list[Row]:
     """Start a stack, run every concurrency point on it, stop it; a point that fails ends the stack's
     sweep, is added to ``failures`` and the points before it are kept."""
     from zetta.local_stack import LocalStack
@@ -685,57 +687,88 @@ def run_stack(spec: StackSpec, concurrency: Sequence[int], episodes: int, task: 
             f"up in {time.perf_counter() - t:.1f} s; {' '.join(f'{k}={v}' for k, v in spec.extra_env.items())}")
         policy_url = stack.services["policy-0"].metrics_url
         rows = asyncio.run(_stack_points(stack, spec, concurrency, episodes, task, max_steps, policy_url, log,
-                                         gateway_probe, failures))
+                                         gateway_probe, failures, pairing))
     shutil.rmtree(workdir, ignore_errors=True)
     return rows
 
 
 async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int], episodes: int, task: str,
                         max_steps: int, policy_url: str, log: Log, gateway_probe: dict[str, float] | None,
-                        failures: list[str]) -> list[Row]:
+                        failures: list[str], pairing: Pairing | None = None) -> list[Row]:
     from zetta.client import Gateway, ZettaError
 
-    rows = []
+    rows: list[Row] = []
     async with Gateway(stack.gateway_address) as gw:
         sessions = await create_sessions(gw, max(concurrency), env_config(task, max_steps), 2 * spec.env_workers, log)
-        try:
-            first = 0
-            for c in concurrency:
-                n = max(episodes, 2 * c)
-                ids = balanced(sessions.infos, c)
-                meter = ResourceMeter(lambda: stack_pids(stack))
-                profiler = Profiler(stack, Path(spec.profile_dir)) if spec.profile_dir and c == spec.profile_concurrency \
-                    else None
-                before = histogram_totals(policy_url, spec.model)
+        first = 0
+
+        async def point(c: int, n: int, mode: str, profile: bool = False) -> Row:
+            nonlocal first
+            ids = balanced(sessions.infos, c)
+            meter = ResourceMeter(lambda: stack_pids(stack))
+            profiler = Profiler(stack, Path(spec.profile_dir)) if profile else None
+            before = histogram_totals(policy_url, spec.model)
+            if profiler is not None:
+                profiler.start()
+            meter.start()
+            try:
+                done, wall = await run_lanes(gw, ids, n, task, max_steps, first)
+            finally:
                 if profiler is not None:
-                    profiler.start()
-                meter.start()
+                    log(f"  profile of {mode} c={c}: {profiler.stop()}")
+            usage = meter.stop()
+            after = histogram_totals(policy_url, spec.model)
+            first += n
+            wait = histogram_mean(before, after, "zetta_policy_queue_wait_seconds")
+            row = Row(mode, c, done, wall, usage, histogram_mean(before, after, "zetta_policy_batch_size"),
+                      load_average(), queue_wait_ms=None if wait is None else 1000.0 * wait)
+            log(f"  {mode} c={c}: {n} episodes in {wall:.1f} s = {row.episodes_per_min:.1f}/min, "
+                f"{row.steps_per_s:.0f} steps/s, p50 {row.latency(50):.2f} s, p99 {row.latency(99):.2f} s, "
+                f"batch {row.batch_mean or 0:.1f}, queue wait {row.queue_wait_ms or 0:.1f} ms, CPU own "
+                f"{usage.own_cpu_pct:.0f}% machine {usage.machine_cpu_pct:.0f}%, load {row.load:.2f}")
+            return row
+
+        try:
+            for c in concurrency:
+                profile = bool(spec.profile_dir) and c == spec.profile_concurrency
                 try:
-                    done, wall = await run_lanes(gw, ids, n, task, max_steps, first)
+                    rows.append(await point(c, max(episodes, 2 * c), spec.mode, profile))
                 except ZettaError as err:  # e.g. an env worker killed for memory: the rows so far stand
                     failures.append(f"{spec.mode} at concurrency {c}: {err}")
                     log(f"  {spec.mode} c={c} FAILED: {err}")
                     break
-                finally:
-                    if profiler is not None:
-                        log(f"  profile of {spec.mode} c={c}: {profiler.stop()}")
-                usage = meter.stop()
-                after = histogram_totals(policy_url, spec.model)
-                first += n
-                wait = histogram_mean(before, after, "zetta_policy_queue_wait_seconds")
-                row = Row(spec.mode, c, done, wall, usage, histogram_mean(before, after, "zetta_policy_batch_size"),
-                          load_average(), queue_wait_ms=None if wait is None else 1000.0 * wait)
-                log(f"  {spec.mode} c={c}: {n} episodes in {wall:.1f} s = {row.episodes_per_min:.1f}/min, "
-                    f"{row.steps_per_s:.0f} steps/s, p50 {row.latency(50):.2f} s, p99 {row.latency(99):.2f} s, "
-                    f"batch {row.batch_mean or 0:.1f}, queue wait {row.queue_wait_ms or 0:.1f} ms, CPU own "
-                    f"{usage.own_cpu_pct:.0f}% machine {usage.machine_cpu_pct:.0f}%, load {row.load:.2f}")
-                rows.append(row)
+            if pairing is not None and rows and not failures:
+                best = max(rows, key=lambda r: r.steps_per_s).concurrency
+                log(f"  paired rounds at the best concurrency ({best}): limit and stack in turn")
+                for r in range(pairing.rounds):
+                    stack_first = r % 2 == 1  # alternate the order, so drifting load weighs on both
+                    pair: dict[str, Row] = {}
+                    for part in (("stack", "limit") if stack_first else ("limit", "stack")):
+                        if part == "limit":  # in a thread: the loop keeps the sessions' leases alive
+                            pair["limit"] = await asyncio.to_thread(pairing.limit)
+                        else:
+                            pair["stack"] = await point(best, 2 * max(episodes, 2 * best), f"{spec.mode}-paired")
+                    pairing.results.append(pair)
             if gateway_probe is not None and not failures:
                 gateway_probe.update(await _gateway_hop(sessions))
         finally:
             with contextlib.suppress(ZettaError):
                 await sessions.close()
     return rows
+
+
+@dataclass
+class Pairing:
+    """Rounds that measure the ``limit`` row and the stack's best point one right after the other.
+
+    The sweep's rows run minutes apart, and on a shared machine the same measurement a few
+    minutes later can differ by a quarter; a round compares two measurements made seconds apart,
+    and the medians over rounds (the order alternating) are what the limit target is judged on.
+    """
+
+    rounds: int
+    limit: Callable[[], Row]
+    results: list[dict[str, Row]] = field(default_factory=list)
 
 
 async def _gateway_hop(sessions: Any, calls: int = 200) -> dict[str, float]:
@@ -775,23 +808,28 @@ class Results:
     elapsed_s: float = 0.0
     #: What the limit rows stepped (the policy's recorded actions, or random ones).
     limit_actions: str = ""
+    #: Paired rounds at the stack's best concurrency: {"limit": Row, "stack": Row} each (see Pairing).
+    paired: list[dict[str, Row]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
         out["rows"] = [r.to_json() for r in self.rows]
+        out["paired"] = [{k: r.to_json() for k, r in pair.items()} for pair in self.paired]
         return out
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "Results":
         """A run written by ``--json``, to render its report again."""
-        rows = []
-        for r in data["rows"]:
+        def row(r: dict[str, Any]) -> Row:
             usage = Usage(**r["usage"]) if r.get("usage") else None
-            rows.append(Row(r["mode"], r["concurrency"], [Episode(**e) for e in r["episodes"]], r["wall_s"], usage,
-                            r.get("batch_mean"), r.get("load", 0.0), r.get("note", ""), r.get("queue_wait_ms")))
+            return Row(r["mode"], r["concurrency"], [Episode(**e) for e in r["episodes"]], r["wall_s"], usage,
+                       r.get("batch_mean"), r.get("load", 0.0), r.get("note", ""), r.get("queue_wait_ms"))
+
         fields = {k: data[k] for k in ("args", "machine", "started", "load_start", "load_end", "policy_ops", "chunk",
                                        "gateway", "failures", "elapsed_s", "limit_actions") if k in data}
-        return cls(**fields, rows=rows, inference_ms={int(k): v for k, v in data.get("inference_ms", {}).items()})
+        return cls(**fields, rows=[row(r) for r in data["rows"]],
+                   inference_ms={int(k): v for k, v in data.get("inference_ms", {}).items()},
+                   paired=[{k: row(r) for k, r in pair.items()} for pair in data.get("paired", [])])
 
 
 def machine() -> str:
@@ -829,9 +867,14 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
               for kind in ("fast", "obs")]
     slots = -(-max(args.concurrency) // args.env_workers)
     profile_c = args.profile_concurrency or (16 if 16 in args.concurrency else max(args.concurrency))
+    pairing = Pairing(args.paired_rounds, functools.partial(
+        run_limit, "fast", args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
+    ) if args.paired_rounds else None
     stack = run_stack(StackSpec("stack", args.env_workers, slots, args.model, profile_dir=args.profile,
                                 profile_concurrency=profile_c),
-                      args.concurrency, args.episodes, args.task, args.max_steps, log, res.failures, res.gateway)
+                      args.concurrency, args.episodes, args.task, args.max_steps, log, res.failures, res.gateway,
+                      pairing)
+    res.paired = pairing.results if pairing is not None else []
     off: list[Row] = []
     if args.baseline_concurrency:
         off_slots = -(-max(args.baseline_concurrency) // args.env_workers)
@@ -877,6 +920,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--naive-fast-episodes", type=int, default=4, help="episodes of the naive-fast loop (default 4)")
     p.add_argument("--limit-seconds", type=float, default=12.0, help="seconds of each limit measurement (default 12)")
     p.add_argument("--limit-processes", type=int, default=0, help="processes of the limit rows (default: one per core)")
+    p.add_argument("--paired-rounds", type=int, default=3,
+                   help="rounds of the limit and the stack's best point measured one after the other, the limit "
+                        "target judged on their medians (default 3; 0: judge on the sweep's rows)")
     p.add_argument("--env-workers", type=int, default=2, help="env worker processes of the stack (default 2)")
     p.add_argument("--model", default=DEFAULT_MODEL, help=f"served policy (default {DEFAULT_MODEL})")
     p.add_argument("--task", default=DEFAULT_TASK, help=f"LIBERO-Goal task (default {DEFAULT_TASK})")
@@ -892,8 +938,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1 or args.naive_episodes < 0 or args.naive_fast_episodes < 0:
         p.error("--episodes and --max-steps must be >= 1, naive episode counts >= 0")
-    if args.env_workers < 1 or args.limit_seconds <= 0:
-        p.error("--env-workers must be >= 1 and --limit-seconds > 0")
+    if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0:
+        p.error("--env-workers must be >= 1, --limit-seconds > 0 and --paired-rounds >= 0")
     return args
 
 
@@ -924,6 +970,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print()
     print(bench_report.text_table(res))
     print()
+    if res.paired:
+        print(f"paired rounds (limit and the stack at concurrency {res.paired[0]['stack'].concurrency}, one after the "
+              "other):")
+        print(bench_report.aligned([bench_report.PAIRED_HEADER, *bench_report.paired_rows(res)]))
+        print()
     print(bench_report.targets_text(res))
     for failure in res.failures:
         print(f"FAILED   {failure}")
