@@ -57,9 +57,9 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 2), ("stack", 2, 4)]
     best = max(stack_rows, key=lambda r: r.steps_per_s).concurrency
     assert len(pairing.results) == 2 == len(limit_calls)
-    for p in pairing.results:  # twice a sweep point's episodes, at the best concurrency
+    for p in pairing.results:  # a sweep point's episodes, at the best concurrency
         assert (p["stack"].mode, p["stack"].concurrency, len(p["stack"].episodes)) == (
-            "stack-paired", best, 2 * max(2, 2 * best))
+            "stack-paired", best, max(2, 2 * best))
     for row in stack_rows:
         assert all(e.steps == 8 for e in row.episodes)  # the fixed budget, whatever the policy does
         assert row.batch_mean is not None and row.batch_mean >= 1.0
@@ -100,6 +100,22 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     assert all(p.stat().st_size > 1000 for p in written)
     again = bs.Results.from_json(json.loads(json.dumps(res.to_json(), default=float)))  # what --json writes
     assert bench_report.targets(again) == bench_report.targets(res)
+
+
+def test_limit_pool_measures_the_same_processes_again_and_stops_early() -> None:
+    """The paired rounds' limit: processes built once, a window per measure(); close() releases
+    processes still waiting for rounds that will not come."""
+    logs: list[str] = []
+    pool = bs.LimitPool("fast", bs.DEFAULT_TASK, 8, 0.3, 1, rounds=3)
+    try:
+        first, second = pool.measure(logs.append), pool.measure(logs.append)
+    finally:
+        pool.close()
+    for row in (first, second):
+        assert row.mode == "limit" and row.steps >= 8 and all(e.steps == 8 for e in row.episodes)
+        assert row.cpu_ms_per_step is not None and row.cpu_ms_per_step > 0
+    assert second.episodes and len(logs) == 2
+    assert all(not c.is_alive() for c in pool._children), "the third round's wait was released"
 
 
 def test_targets_judge_the_issue_thresholds() -> None:
@@ -174,7 +190,7 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     assert modes == [("naive", 1), ("naive-fast", 1), ("limit", cores), ("limit-obs", cores), ("stack", 1),
                      ("stack", 2), ("stack-off", 2)]
     assert (tmp_path / "throughput-latency.png").exists()
-    assert [(p["limit"]["mode"], p["stack"]["mode"]) for p in data["paired"]] == [("limit", "stack-paired")] * 3
+    assert [(p["limit"]["mode"], p["stack"]["mode"]) for p in data["paired"]] == [("limit", "stack-paired")] * 6
 
 
 @pytest.mark.parametrize("sharing", [True, False])

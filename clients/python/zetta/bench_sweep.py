@@ -369,7 +369,7 @@ def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
 
 
 def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any,
-                replays: Sequence[Replay] = (), chunk: int = 8) -> None:
+                replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1) -> None:
     """One core's worth of stepping with no infrastructure: reset, an episode's actions, repeat.
 
     ``kind`` "fast": ``FastStepper.step`` on the slot's env (the fastest env path); "obs": the
@@ -379,7 +379,12 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
     sweep: the same contact-rich physics the stacks step); none: :func:`random_replays`. Every
     reset replays the settle steps (no settled snapshot is reused), as the first reset of a key
     does in the stacks, whose episodes never repeat a key on one env.
+
+    ``rounds`` windows of ``seconds`` each, every one started by ``barrier`` and reported on ``out``,
+    so one set of processes (built once) can be measured again and again; an aborted barrier ends it.
     """
+    import threading
+
     with quiet_fds():
         from services.env_worker.families import settled
         from services.env_worker.families.base import ResetSpec, get_family, select_gl_backend
@@ -394,57 +399,85 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
         stepper = make_stepper(slot._env, True)
         for a in replays[0][1][:5]:
             stepper.step(a.astype(np.float64))
-    barrier.wait()
-    cpu0, start = time.process_time(), time.time()
-    episodes = []
     k = seed
-    while time.time() - start < seconds:
-        t = time.perf_counter()
-        (key_seed, init), actions = replays[k % len(replays)]
-        settled.forget(slot._env)
-        slot.reset(ResetSpec(task=task, seed=key_seed, init_state_index=init))
-        if kind == "fast":
-            for a in actions:
-                stepper.step(a.astype(np.float64))
-        else:
-            for i, a in enumerate(actions):
-                slot.step(a, observe=i % chunk == chunk - 1 or i == len(actions) - 1)
-        episodes.append((len(actions), time.perf_counter() - t))
-        k += 1
-    out.put({"start": start, "end": time.time(), "cpu": time.process_time() - cpu0, "episodes": episodes})
-    slot.close()
-    family.close()
+    try:
+        for _ in range(rounds):
+            barrier.wait()
+            cpu0, start = time.process_time(), time.time()
+            episodes = []
+            while time.time() - start < seconds:
+                t = time.perf_counter()
+                (key_seed, init), actions = replays[k % len(replays)]
+                settled.forget(slot._env)
+                slot.reset(ResetSpec(task=task, seed=key_seed, init_state_index=init))
+                if kind == "fast":
+                    for a in actions:
+                        stepper.step(a.astype(np.float64))
+                else:
+                    for i, a in enumerate(actions):
+                        slot.step(a, observe=i % chunk == chunk - 1 or i == len(actions) - 1)
+                episodes.append((len(actions), time.perf_counter() - t))
+                k += 1
+            out.put({"start": start, "end": time.time(), "cpu": time.process_time() - cpu0, "episodes": episodes})
+    except threading.BrokenBarrierError:  # the parent stopped measuring early
+        pass
+    finally:
+        slot.close()
+        family.close()
+
+
+class LimitPool:
+    """``procs`` limit processes built once, measured in ``rounds`` windows on demand."""
+
+    def __init__(self, kind: str, task: str, max_steps: int, seconds: float, procs: int,
+                 replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.kind, self.procs, self.seconds = kind, procs, seconds
+        self._barrier = ctx.Barrier(procs + 1)
+        self._out = ctx.Queue()
+        self._children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, self._barrier,
+                                                                self._out, replays, chunk, rounds))
+                          for i in range(procs)]
+        for c in self._children:
+            c.start()
+
+    def measure(self, log: Log) -> Row:
+        """One window, all processes stepping at once; aggregated over the span from the first start
+        to the last end."""
+        children = self._children
+        meter = ResourceMeter(lambda: {f"{self.kind}-{i}": c.pid for i, c in enumerate(children) if c.pid is not None})
+        self._barrier.wait(timeout=600)
+        meter.start()
+        results = [self._out.get(timeout=self.seconds + 600) for _ in children]
+        usage = meter.stop()
+        start = min(r["start"] for r in results)
+        end = max(r["end"] for r in results)
+        episodes = [Episode(i, False, s, lat) for i, (s, lat) in enumerate(e for r in results for e in r["episodes"])]
+        usage.cpu_s = sum(r["cpu"] for r in results)  # the stepping loops alone, not start-up or hand-over
+        row = Row(f"limit{'' if self.kind == 'fast' else '-obs'}", self.procs, episodes, end - start, usage,
+                  load=load_average())
+        log(f"{row.mode}: {self.procs} processes, {row.steps} steps in {row.wall_s:.1f} s = {row.steps_per_s:.0f} "
+            f"steps/s, {row.episodes_per_min:.1f} episodes/min, {row.cpu_ms_per_step:.2f} CPU ms per step (resets "
+            f"included); load {row.load:.2f}")
+        return row
+
+    def close(self) -> None:
+        """Release the processes, also those still waiting for a round."""
+        self._barrier.abort()
+        for c in self._children:
+            c.join(timeout=60)
 
 
 def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, log: Log,
               replays: Sequence[Replay] = (), chunk: int = 8) -> Row:
-    """``procs`` processes stepping at once; aggregate over the span from the first start to the last end."""
-    import multiprocessing
-
-    ctx = multiprocessing.get_context("spawn")
-    barrier = ctx.Barrier(procs + 1)
-    out = ctx.Queue()
-    children = [ctx.Process(target=limit_child,
-                            args=(kind, task, max_steps, seconds, i + 1, barrier, out, replays, chunk))
-                for i in range(procs)]
-    for c in children:
-        c.start()
-    meter = ResourceMeter(lambda: {f"{kind}-{i}": c.pid for i, c in enumerate(children) if c.pid is not None})
-    barrier.wait(timeout=600)
-    meter.start()
-    results = [out.get(timeout=seconds + 600) for _ in children]
-    usage = meter.stop()
-    for c in children:
-        c.join(timeout=60)
-    start = min(r["start"] for r in results)
-    end = max(r["end"] for r in results)
-    episodes = [Episode(i, False, s, lat) for i, (s, lat) in enumerate(e for r in results for e in r["episodes"])]
-    usage.cpu_s = sum(r["cpu"] for r in results)  # the stepping loops alone, not start-up or hand-over
-    row = Row(f"limit{'' if kind == 'fast' else '-obs'}", procs, episodes, end - start, usage, load=load_average())
-    log(f"{row.mode}: {procs} processes, {row.steps} steps in {row.wall_s:.1f} s = {row.steps_per_s:.0f} steps/s, "
-        f"{row.episodes_per_min:.1f} episodes/min, {row.cpu_ms_per_step:.2f} CPU ms per step (resets included); "
-        f"load {row.load:.2f}")
-    return row
+    """``procs`` processes stepping at once for one window of ``seconds``."""
+    pool = LimitPool(kind, task, max_steps, seconds, procs, replays, chunk)
+    try:
+        return pool.measure(log)
+    finally:
+        pool.close()
 
 
 def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: str, max_steps: int,
@@ -747,7 +780,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                         if part == "limit":  # in a thread: the loop keeps the sessions' leases alive
                             pair["limit"] = await asyncio.to_thread(pairing.limit)
                         else:
-                            pair["stack"] = await point(best, 2 * max(episodes, 2 * best), f"{spec.mode}-paired")
+                            pair["stack"] = await point(best, max(episodes, 2 * best), f"{spec.mode}-paired")
                     pairing.results.append(pair)
             if gateway_probe is not None and not failures:
                 gateway_probe.update(await _gateway_hop(sessions))
@@ -867,13 +900,17 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
               for kind in ("fast", "obs")]
     slots = -(-max(args.concurrency) // args.env_workers)
     profile_c = args.profile_concurrency or (16 if 16 in args.concurrency else max(args.concurrency))
-    pairing = Pairing(args.paired_rounds, functools.partial(
-        run_limit, "fast", args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
-    ) if args.paired_rounds else None
-    stack = run_stack(StackSpec("stack", args.env_workers, slots, args.model, profile_dir=args.profile,
-                                profile_concurrency=profile_c),
-                      args.concurrency, args.episodes, args.task, args.max_steps, log, res.failures, res.gateway,
-                      pairing)
+    pool = LimitPool("fast", args.task, args.max_steps, args.paired_seconds, cores, replays, res.chunk,
+                     args.paired_rounds) if args.paired_rounds else None
+    try:
+        pairing = Pairing(args.paired_rounds, functools.partial(pool.measure, log)) if pool is not None else None
+        stack = run_stack(StackSpec("stack", args.env_workers, slots, args.model, profile_dir=args.profile,
+                                    profile_concurrency=profile_c),
+                          args.concurrency, args.episodes, args.task, args.max_steps, log, res.failures, res.gateway,
+                          pairing)
+    finally:
+        if pool is not None:
+            pool.close()
     res.paired = pairing.results if pairing is not None else []
     off: list[Row] = []
     if args.baseline_concurrency:
@@ -920,9 +957,11 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--naive-fast-episodes", type=int, default=4, help="episodes of the naive-fast loop (default 4)")
     p.add_argument("--limit-seconds", type=float, default=12.0, help="seconds of each limit measurement (default 12)")
     p.add_argument("--limit-processes", type=int, default=0, help="processes of the limit rows (default: one per core)")
-    p.add_argument("--paired-rounds", type=int, default=3,
+    p.add_argument("--paired-rounds", type=int, default=6,
                    help="rounds of the limit and the stack's best point measured one after the other, the limit "
-                        "target judged on their medians (default 3; 0: judge on the sweep's rows)")
+                        "target judged on their medians (default 6; 0: judge on the sweep's rows)")
+    p.add_argument("--paired-seconds", type=float, default=6.0,
+                   help="seconds of each paired round's limit window (default 6)")
     p.add_argument("--env-workers", type=int, default=2, help="env worker processes of the stack (default 2)")
     p.add_argument("--model", default=DEFAULT_MODEL, help=f"served policy (default {DEFAULT_MODEL})")
     p.add_argument("--task", default=DEFAULT_TASK, help=f"LIBERO-Goal task (default {DEFAULT_TASK})")
@@ -938,8 +977,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1 or args.naive_episodes < 0 or args.naive_fast_episodes < 0:
         p.error("--episodes and --max-steps must be >= 1, naive episode counts >= 0")
-    if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0:
-        p.error("--env-workers must be >= 1, --limit-seconds > 0 and --paired-rounds >= 0")
+    if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0 or args.paired_seconds <= 0:
+        p.error("--env-workers must be >= 1, --limit-seconds and --paired-seconds > 0, --paired-rounds >= 0")
     return args
 
 
