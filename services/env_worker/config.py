@@ -40,6 +40,8 @@ class EnvWorkerConfig:
     #: How inference requests wait for each other to leave as one batch (ZETTA_INFER_HOLD_MS,
     #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
     infer_hold: InferHold = InferHold()
+    #: How many slots run env work at the same time (ZETTA_STEP_CONCURRENCY; 0: no bound; SlotActivity).
+    step_concurrency: int = 2
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -69,6 +71,7 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
+            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", 2, minimum=0),
             infer_hold=InferHold(
                 max_ms=env.float("ZETTA_INFER_HOLD_MS", DEFAULT_INFER_HOLD_MS, minimum=0.0),
                 min_busy=env.int("ZETTA_INFER_HOLD_MIN_BUSY", InferHold.min_busy, minimum=1),

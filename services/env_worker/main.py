@@ -54,7 +54,7 @@ async def main() -> None:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES names {name!r}, which cannot run here: {reason}")
     if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
         threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
-    table = SlotTable(cfg.slots, cfg.families)
+    table = SlotTable(cfg.slots, cfg.families, cfg.step_concurrency)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms, cfg.infer_hold,
                           busy=lambda: table.activity.busy)
     table.activity.listen(policy.slot_finished)

@@ -9,6 +9,7 @@ canonical config) are kept here too, so every slot of the same config reuses one
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import uuid
 from collections.abc import Callable, Mapping, Sequence
@@ -44,16 +45,32 @@ class Episode:
 
 
 class SlotActivity:
-    """How many of a worker's slots have work on their threads right now (a step, a reset).
+    """A worker's slots' work on their threads (a step, a reset): how much, and how much at once.
 
-    The policy client holds its inference requests while enough slots are still busy, so that
-    they leave together as one batch (services/env_worker/policy_client.py); it is told when a slot
-    finishes. Only the event loop touches it, so a plain counter suffices.
+    ``busy`` counts the slots with work submitted and not finished. The policy client holds its
+    inference requests while enough slots are still busy, so that they leave together as one batch
+    (services/env_worker/policy_client.py); it is told when a slot finishes.
+
+    ``concurrency`` bounds how many slots run their work at the same time (0: no bound). The
+    fast step's physics kernel releases the GIL, so two slot threads of one process overlap; more
+    than that only contend for the GIL and switch between scenes, which costs CPU per step (8 slot
+    threads of one process on 2 cores: 5.6 CPU ms a step unbounded, 4.9 with 2 at a time, and 23 %
+    more steps/s; docs/throughput.md). Only the event loop touches it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, concurrency: int = 0) -> None:
         self.busy = 0
+        self.concurrency = concurrency
+        self._turns: asyncio.Semaphore | None = None
         self._listeners: list[Callable[[], None]] = []
+
+    def turn(self) -> asyncio.Semaphore | contextlib.nullcontext[None]:
+        """What a slot's work runs under: a turn among ``concurrency``, or no bound."""
+        if not self.concurrency:
+            return contextlib.nullcontext()
+        if self._turns is None:  # made on the event loop that runs the slots
+            self._turns = asyncio.Semaphore(self.concurrency)
+        return self._turns
 
     def listen(self, callback: Callable[[], None]) -> None:
         """Call ``callback`` (on the event loop) whenever a slot finishes its work."""
@@ -90,7 +107,8 @@ class BoundSlot:
         """Run ``fn`` on this slot's pinned thread."""
         self.activity.enter()
         try:
-            return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+            async with self.activity.turn():
+                return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
         finally:
             self.activity.leave()
 
@@ -113,7 +131,7 @@ class BoundSlot:
 class SlotTable:
     """Binds sessions to slot indices and keeps the resource-sharing groups."""
 
-    def __init__(self, capacity: int, families: Sequence[str]) -> None:
+    def __init__(self, capacity: int, families: Sequence[str], step_concurrency: int = 0) -> None:
         self.capacity = capacity
         self.families = tuple(families)
         self._executors = [
@@ -123,8 +141,8 @@ class SlotTable:
         self._bound: dict[str, BoundSlot] = {}
         self._groups: dict[str, EnvFamily] = {}
         self._group_lock = threading.Lock()
-        #: Slots with work on their threads now (see SlotActivity).
-        self.activity = SlotActivity()
+        #: Slots with work on their threads now, and how many may run at once (see SlotActivity).
+        self.activity = SlotActivity(step_concurrency)
         metrics.SLOTS.labels("free").set(capacity)
         metrics.SLOTS.labels("bound").set(0)
 

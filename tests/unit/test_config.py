@@ -133,7 +133,7 @@ def test_env_worker_parses_lists_and_resolves_identity() -> None:
     assert cfg.policy_addresses == ("a:1", "b:2")
     assert cfg.families == ("robosuite", "libero")
     assert cfg.slots == 3
-    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2)
+    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2) and cfg.step_concurrency == 2
     resolved = cfg.resolved(40123)
     assert resolved.port == 40123
     assert resolved.advertise_address == "127.0.0.1:40123"
@@ -147,12 +147,14 @@ def test_env_worker_requires_gateway_and_valid_values() -> None:
     """Missing gateway, bad addresses, no families and zero slots are all named."""
     with pytest.raises(ConfigError) as info:
         EnvWorkerConfig.from_env({"ZETTA_POLICY_ADDRESSES": "nocolon", "ZETTA_ENV_FAMILIES": " , ",
-                                  "ZETTA_SLOTS": "0", "ZETTA_INFER_HOLD_MS": "-1", "ZETTA_INFER_HOLD_MIN_BUSY": "0"})
+                                  "ZETTA_SLOTS": "0", "ZETTA_INFER_HOLD_MS": "-1", "ZETTA_INFER_HOLD_MIN_BUSY": "0",
+                                  "ZETTA_STEP_CONCURRENCY": "-1"})
     msg = str(info.value)
     assert msg.startswith("env worker:")
     for needle in ("ZETTA_GATEWAY_ADDRESS is required", "ZETTA_POLICY_ADDRESSES: 'nocolon'",
                    "ZETTA_ENV_FAMILIES is empty", "ZETTA_SLOTS=0 is below the minimum 1",
-                   "ZETTA_INFER_HOLD_MS=-1", "ZETTA_INFER_HOLD_MIN_BUSY=0 is below the minimum 1"):
+                   "ZETTA_INFER_HOLD_MS=-1", "ZETTA_INFER_HOLD_MIN_BUSY=0 is below the minimum 1",
+                   "ZETTA_STEP_CONCURRENCY=-1"):
         assert needle in msg, needle
 
 

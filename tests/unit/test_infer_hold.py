@@ -142,3 +142,38 @@ async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) 
         await off.close()
     finally:
         await lone.close()
+
+
+async def test_step_concurrency_bounds_the_slots_working_at_once() -> None:
+    """SlotTable(step_concurrency=2): of 6 slots asked to work together, 2 run at a time, all finish,
+    and every one counts as busy (the hold's measure) while it waits for its turn."""
+    import threading
+
+    from services.env_worker.slots import SlotTable
+
+    table = SlotTable(6, ["robosuite"], step_concurrency=2)
+    running, most, lock = [0], [0], threading.Lock()
+
+    def work() -> None:
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.05)
+        with lock:
+            running[0] -= 1
+
+    try:
+        slots = table.bind([f"s{i}" for i in range(6)], "robosuite", None)  # family unused by run()
+        jobs = asyncio.gather(*(s.run(work) for s in slots))
+        await asyncio.sleep(0.01)
+        assert table.activity.busy == 6
+        await asyncio.wait_for(jobs, 5)
+        assert most[0] == 2 and table.activity.busy == 0
+        unbounded = SlotTable(6, ["robosuite"])
+        most[0] = 0
+        free = unbounded.bind([f"u{i}" for i in range(6)], "robosuite", None)
+        await asyncio.wait_for(asyncio.gather(*(s.run(work) for s in free)), 5)
+        assert most[0] == 6
+        unbounded.shutdown()
+    finally:
+        table.shutdown()
