@@ -41,7 +41,7 @@ class EnvWorkerConfig:
     #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
     infer_hold: InferHold = InferHold()
     #: How many slots run env work at the same time (ZETTA_STEP_CONCURRENCY; 0: no bound; SlotActivity).
-    step_concurrency: int = 2
+    step_concurrency: int = 0
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -71,7 +71,7 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
-            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", 2, minimum=0),
+            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", 0, minimum=0),
             infer_hold=InferHold(
                 max_ms=env.float("ZETTA_INFER_HOLD_MS", DEFAULT_INFER_HOLD_MS, minimum=0.0),
                 min_busy=env.int("ZETTA_INFER_HOLD_MIN_BUSY", InferHold.min_busy, minimum=1),

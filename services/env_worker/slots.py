@@ -53,9 +53,10 @@ class SlotActivity:
 
     ``concurrency`` bounds how many slots run their work at the same time (0: no bound). The
     fast step's physics kernel releases the GIL, so two slot threads of one process overlap; more
-    than that only contend for the GIL and switch between scenes, which costs CPU per step (8 slot
-    threads of one process on 2 cores: 5.6 CPU ms a step unbounded, 4.9 with 2 at a time, and 23 %
-    more steps/s; docs/throughput.md). Only the event loop touches it.
+    than that contend for the GIL and switch between scenes (8 slot threads of one process on 2
+    cores: 5.6 CPU ms a step unbounded, 4.9 with 2 at a time, 23 % more steps/s), though in the
+    2-core stack the bound also shrank inference batches and did not pay (docs/throughput.md).
+    Only the event loop touches it.
     """
 
     def __init__(self, concurrency: int = 0) -> None:

@@ -133,7 +133,7 @@ def test_env_worker_parses_lists_and_resolves_identity() -> None:
     assert cfg.policy_addresses == ("a:1", "b:2")
     assert cfg.families == ("robosuite", "libero")
     assert cfg.slots == 3
-    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2) and cfg.step_concurrency == 2
+    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2) and cfg.step_concurrency == 0
     resolved = cfg.resolved(40123)
     assert resolved.port == 40123
     assert resolved.advertise_address == "127.0.0.1:40123"
