@@ -345,11 +345,6 @@ class TaskState:
         out["task_grasped"] = out["phi_grasp"].copy()
         return out
 
-    def observe(self, action: np.ndarray | None) -> dict[str, np.ndarray]:
-        """One step observed: :meth:`advance` then :meth:`observation`."""
-        self.advance(action)
-        return self.observation()
-
     def names(self) -> list[str]:
         return self.plan.names
 
