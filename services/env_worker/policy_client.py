@@ -10,8 +10,9 @@ cost of one on a CPU (and on a GPU), but slots in a closed loop ask one at a tim
 milliseconds apart, so requests sent as they come make batches of one or two. While at least
 ``min_busy`` of this worker's slots are still stepping, the worker's cores are busy anyway, and a
 request that waits for company costs no throughput: it is held until fewer slots are busy (they
-have finished their chunks and asked too), or for ``max_ms`` at most, and the held requests leave
-in one call. A lone session (fewer busy slots than ``min_busy``) is never held.
+have finished their chunks and asked too), or for ``max_ms`` at most (and never more than half
+of a request's own timeout), and the held requests leave in one call. A lone session (fewer busy
+slots than ``min_busy``) is never held.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ class _Pending:
     item: policy_worker_pb2.InferItem
     future: asyncio.Future[policy_worker_pb2.InferOutput]
     arrival: float
+    #: Loop time after which holding it longer is not allowed.
+    hold_until: float
 
 
 class PolicyClient:
@@ -101,7 +104,8 @@ class PolicyClient:
                 encode(array, item.observation.tensors[name])
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[policy_worker_pb2.InferOutput] = loop.create_future()
-        self._pending.append(_Pending(item, fut, loop.time()))
+        now = loop.time()
+        self._pending.append(_Pending(item, fut, now, now + min(self._hold.max_ms, item.timeout_ms / 2) / 1000.0))
         self._check_soon()
         return await fut
 
@@ -123,10 +127,11 @@ class PolicyClient:
             return
         hold = self._hold
         if hold.max_ms > 0 and self._busy() >= hold.min_busy:
-            if self._hold_timer is None:
-                loop = asyncio.get_running_loop()
-                due = self._pending[0].arrival + hold.max_ms / 1000.0
-                self._hold_timer = loop.call_at(due, self._flush)
+            due = min(p.hold_until for p in self._pending)
+            if self._hold_timer is None or self._hold_timer.when() > due:
+                if self._hold_timer is not None:
+                    self._hold_timer.cancel()
+                self._hold_timer = asyncio.get_running_loop().call_at(due, self._flush)
             return
         self._flush()
 

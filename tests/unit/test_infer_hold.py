@@ -124,6 +124,24 @@ async def test_a_request_is_held_at_most_max_ms(policy_worker) -> None:
         await client.close()
 
 
+async def test_a_request_is_held_at_most_half_its_timeout(policy_worker) -> None:
+    """A request with a short budget cuts the hold of every request waiting with it."""
+    address, batches = policy_worker
+    activity = SlotActivity()
+    client = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
+    try:
+        for _ in range(5):
+            activity.enter()
+        start = time.monotonic()
+        patient = asyncio.ensure_future(client.infer("patient", MODEL, OBS, "put it in", 5000))
+        await asyncio.sleep(0.02)
+        hurried = asyncio.ensure_future(client.infer("hurried", MODEL, OBS, "put it in", 200))  # held <= 100 ms
+        await asyncio.wait_for(asyncio.gather(patient, hurried), 5)
+        assert time.monotonic() - start < 1.0 and batches.sizes == [2]
+    finally:
+        await client.close()
+
+
 async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) -> None:
     address, batches = policy_worker
     activity = SlotActivity()
