@@ -182,7 +182,8 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "run.json"
     code = zetta_main(["bench", "rollout", "--concurrency", "1,2", "--baseline-concurrency", "2", "--episodes", "2",
                        "--max-steps", "8", "--naive-episodes", "1", "--naive-fast-episodes", "1",
-                       "--limit-seconds", "0.5", "--json", str(out), "--write-docs", "--docs-dir", str(tmp_path)])
+                       "--limit-seconds", "0.5", "--paired-rounds", "2", "--paired-seconds", "0.5", "--json", str(out),
+                       "--write-docs", "--docs-dir", str(tmp_path)])
     assert code == 0
     data = json.loads(out.read_text())
     modes = [(r["mode"], r["concurrency"]) for r in data["rows"]]
@@ -190,7 +191,7 @@ def test_command_line_end_to_end(tmp_path: Path) -> None:
     assert modes == [("naive", 1), ("naive-fast", 1), ("limit", cores), ("limit-obs", cores), ("stack", 1),
                      ("stack", 2), ("stack-off", 2)]
     assert (tmp_path / "throughput-latency.png").exists()
-    assert [(p["limit"]["mode"], p["stack"]["mode"]) for p in data["paired"]] == [("limit", "stack-paired")] * 6
+    assert [(p["limit"]["mode"], p["stack"]["mode"]) for p in data["paired"]] == [("limit", "stack-paired")] * 2
 
 
 @pytest.mark.parametrize("sharing", [True, False])
