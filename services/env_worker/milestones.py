@@ -386,7 +386,8 @@ class MilestoneTracker:
                 ok = self._lifted(x, box)  # the target's box (often many geoms) only when it matters
                 if ok:
                     target, c = get("bbox", y), _center(box)
-                    ok = bool(np.all(c[:2] >= target[:2] - ABOVE_MARGIN) and np.all(c[:2] <= target[3:5] + ABOVE_MARGIN))
+                    ok = bool(np.all(c[:2] >= target[:2] - ABOVE_MARGIN)
+                              and np.all(c[:2] <= target[3:5] + ABOVE_MARGIN))
             elif m.kind == "toward":
                 start = self._start_dist.get((x, y), 0.0)
                 now = float(np.linalg.norm(_center(get("bbox", x))[:2] - _center(get("bbox", y))[:2]))
