@@ -30,7 +30,7 @@ import numpy as np
 # Lets `python bench/bench_scheduler.py` run from a plain checkout, without installing the package.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.policy_worker.scheduler import BatchScheduler, InferItem, RunBatch, SchedulerConfig
+from services.policy_worker.scheduler import BatchScheduler, InferItem, NullObserver, RunBatch, SchedulerConfig
 
 
 @dataclass
@@ -41,7 +41,7 @@ class RunResult:
     p99_ms: float
 
 
-class _BatchSizes:
+class _BatchSizes(NullObserver):
     """Observer that keeps only what the report needs."""
 
     def __init__(self) -> None:
@@ -51,15 +51,6 @@ class _BatchSizes:
     def on_batch(self, model: str, size: int, compute_seconds: float) -> None:
         self.batches += 1
         self.items += size
-
-    def on_queue_wait(self, model: str, seconds: float) -> None:
-        pass
-
-    def on_queue_depth(self, model: str, depth: int) -> None:
-        pass
-
-    def on_reject(self, model: str, reason: str) -> None:
-        pass
 
 
 def synthetic_model(a: float, b: float) -> RunBatch:

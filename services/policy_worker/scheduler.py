@@ -166,8 +166,9 @@ class SchedulerObserver(Protocol):
     def on_reject(self, model: str, reason: str) -> None: ...
 
 
-class _NullObserver:
-    """Lets the hot path call hooks unconditionally instead of testing for an observer each time."""
+class NullObserver:
+    """Every hook a no-op: what the scheduler calls without an observer (so the hot path calls hooks
+    unconditionally instead of testing for one), and the base of observers that need only some."""
 
     def on_batch(self, model: str, size: int, compute_seconds: float) -> None:
         pass
@@ -308,7 +309,7 @@ class BatchScheduler:
     ) -> None:
         self._run_batch = run_batch
         self._config = config or SchedulerConfig()
-        self._observer: SchedulerObserver = _GuardedObserver(observer) if observer is not None else _NullObserver()
+        self._observer: SchedulerObserver = _GuardedObserver(observer) if observer is not None else NullObserver()
         self._executor = ThreadPoolExecutor(max_workers=self._config.workers, thread_name_prefix="policy-batch")
         # Insertion-ordered; a group is removed as soon as its queue empties, so the dispatcher
         # scans only groups with work.

@@ -17,7 +17,7 @@ import pytest
 from services.env_worker.policy_client import InferHold, PolicyClient
 from services.env_worker.slots import SlotActivity
 from services.policy_worker.models.base import load_model
-from services.policy_worker.scheduler import BatchScheduler, SchedulerConfig
+from services.policy_worker.scheduler import BatchScheduler, NullObserver, SchedulerConfig
 from services.policy_worker.servicer import PolicyWorkerServicer
 from zetta.v1 import policy_worker_pb2_grpc
 
@@ -31,7 +31,7 @@ OBS = {
 }
 
 
-class Batches:
+class Batches(NullObserver):
     """The scheduler's observer: the size of every batch the policy ran."""
 
     def __init__(self) -> None:
@@ -39,15 +39,6 @@ class Batches:
 
     def on_batch(self, model: str, size: int, compute_seconds: float) -> None:
         self.sizes.append(size)
-
-    def on_queue_wait(self, model: str, seconds: float) -> None:
-        pass
-
-    def on_queue_depth(self, model: str, depth: int) -> None:
-        pass
-
-    def on_reject(self, model: str, reason: str) -> None:
-        pass
 
 
 @pytest.fixture
