@@ -94,11 +94,16 @@ def text_table(res: Results) -> str:
     return aligned([HEADER, *rows(res)])
 
 
+def markdown(header: Sequence[str], cells: Sequence[Sequence[str]], first_left: bool = True) -> str:
+    """A Markdown table, numbers right-aligned (and the first column left-aligned if ``first_left``)."""
+    align = ["---" if first_left else "---:"] + ["---:"] * (len(header) - 1)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(align) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in cells])
+
+
 def markdown_table(res: Results) -> str:
     """The table in Markdown."""
-    lines = ["| " + " | ".join(HEADER) + " |", "|" + "|".join(["---"] + ["---:"] * (len(HEADER) - 1)) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows(res)]
-    return "\n".join(lines)
+    return markdown(HEADER, rows(res))
 
 
 def best_stack(res: Results) -> Row | None:
@@ -209,8 +214,7 @@ def paired_rows(res: Results) -> list[tuple[str, ...]]:
 
 def paired_table(res: Results) -> str:
     """The paired rounds in Markdown."""
-    lines = ["| " + " | ".join(PAIRED_HEADER) + " |", "|" + "|".join(["---:"] * len(PAIRED_HEADER)) + "|"]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in paired_rows(res)])
+    return markdown(PAIRED_HEADER, paired_rows(res), first_left=False)
 
 
 def _policy_ms(row: Row) -> float | None:
