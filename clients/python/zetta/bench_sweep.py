@@ -369,7 +369,7 @@ def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
 
 
 def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any,
-                replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1) -> None:
+                replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1, ready: Any = None) -> None:
     """One core's worth of stepping with no infrastructure: reset, an episode's actions, repeat.
 
     ``kind`` "fast": ``FastStepper.step`` on the slot's env (the fastest env path); "obs": the
@@ -382,6 +382,7 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
 
     ``rounds`` windows of ``seconds`` each, every one started by ``barrier`` and reported on ``out``,
     so one set of processes (built once) can be measured again and again; an aborted barrier ends it.
+    ``ready`` (a queue) hears when the set-up is done.
     """
     import threading
 
@@ -399,6 +400,8 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
         stepper = make_stepper(slot._env, True)
         for a in replays[0][1][:5]:
             stepper.step(a.astype(np.float64))
+    if ready is not None:
+        ready.put(seed)
     k = seed
     try:
         for _ in range(rounds):
@@ -427,7 +430,8 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
 
 
 class LimitPool:
-    """``procs`` limit processes built once, measured in ``rounds`` windows on demand."""
+    """``procs`` limit processes built once, measured in ``rounds`` windows on demand; the
+    constructor returns once they are built, so their set-up loads nothing measured after it."""
 
     def __init__(self, kind: str, task: str, max_steps: int, seconds: float, procs: int,
                  replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1) -> None:
@@ -437,11 +441,14 @@ class LimitPool:
         self.kind, self.procs, self.seconds = kind, procs, seconds
         self._barrier = ctx.Barrier(procs + 1)
         self._out = ctx.Queue()
+        ready = ctx.Queue()
         self._children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, self._barrier,
-                                                                self._out, replays, chunk, rounds))
+                                                                self._out, replays, chunk, rounds, ready))
                           for i in range(procs)]
         for c in self._children:
             c.start()
+        for _ in self._children:
+            ready.get(timeout=600)
 
     def measure(self, log: Log) -> Row:
         """One window, all processes stepping at once; aggregated over the span from the first start
