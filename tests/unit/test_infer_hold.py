@@ -7,6 +7,7 @@ env worker's real PolicyClient sends to it, and a SlotActivity stands for the wo
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import AsyncIterator
 
@@ -66,6 +67,19 @@ def _client(address: str, hold: InferHold, activity: SlotActivity) -> PolicyClie
     return client
 
 
+@contextlib.asynccontextmanager
+async def _busy_worker(address: str, hold: InferHold, busy: int) -> AsyncIterator[tuple[PolicyClient, SlotActivity]]:
+    """A policy client of a worker whose other ``busy`` slots are stepping (until the test says)."""
+    activity = SlotActivity()
+    for _ in range(busy):
+        activity.enter()
+    client = _client(address, hold, activity)
+    try:
+        yield client, activity
+    finally:
+        await client.close()
+
+
 async def _ask_apart(client: PolicyClient, n: int, gap: float) -> list[asyncio.Task]:
     """``n`` requests, one every ``gap`` seconds (each in its own loop turn), as slots finishing
     their chunks at different times ask."""
@@ -78,11 +92,7 @@ async def _ask_apart(client: PolicyClient, n: int, gap: float) -> list[asyncio.T
 
 async def test_held_requests_leave_together_when_the_slots_are_done(policy_worker) -> None:
     address, batches = policy_worker
-    activity = SlotActivity()
-    client = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
-    try:
-        for _ in range(3):  # three other slots are still stepping
-            activity.enter()
+    async with _busy_worker(address, InferHold(max_ms=5000, min_busy=2), busy=3) as (client, activity):
         tasks = await _ask_apart(client, 4, 0.01)
         await asyncio.sleep(0.05)
         assert not any(t.done() for t in tasks) and batches.sizes == [], "held while 3 slots are busy"
@@ -94,51 +104,36 @@ async def test_held_requests_leave_together_when_the_slots_are_done(policy_worke
         assert batches.sizes == [4]
         assert [o.token for o in outputs] == [f"slot-{i}" for i in range(4)]
         assert all(o.actions.shape for o in outputs)
-    finally:
-        await client.close()
 
 
 async def test_a_request_is_held_at_most_max_ms(policy_worker) -> None:
     address, batches = policy_worker
-    activity = SlotActivity()
-    client = _client(address, InferHold(max_ms=150, min_busy=2), activity)
-    try:
-        for _ in range(5):
-            activity.enter()  # these slots never finish within the test
+    # These five slots never finish within the test.
+    async with _busy_worker(address, InferHold(max_ms=150, min_busy=2), busy=5) as (client, _):
         start = time.monotonic()
         tasks = await _ask_apart(client, 3, 0.02)
         await asyncio.wait_for(asyncio.gather(*tasks), 5)
         waited = time.monotonic() - start
         assert batches.sizes == [3]
         assert 0.14 <= waited < 1.0, waited
-    finally:
-        await client.close()
 
 
 async def test_a_request_is_held_at_most_half_its_timeout(policy_worker) -> None:
     """A request with a short budget cuts the hold of every request waiting with it."""
     address, batches = policy_worker
-    activity = SlotActivity()
-    client = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
-    try:
-        for _ in range(5):
-            activity.enter()
+    async with _busy_worker(address, InferHold(max_ms=5000, min_busy=2), busy=5) as (client, _):
         start = time.monotonic()
         patient = asyncio.ensure_future(client.infer("patient", MODEL, OBS, "put it in", 5000))
         await asyncio.sleep(0.02)
         hurried = asyncio.ensure_future(client.infer("hurried", MODEL, OBS, "put it in", 200))  # held <= 100 ms
         await asyncio.wait_for(asyncio.gather(patient, hurried), 5)
         assert time.monotonic() - start < 1.0 and batches.sizes == [2]
-    finally:
-        await client.close()
 
 
 async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) -> None:
     address, batches = policy_worker
-    activity = SlotActivity()
-    lone = _client(address, InferHold(max_ms=5000, min_busy=2), activity)
-    try:
-        activity.enter()  # one other slot stepping: fewer than min_busy
+    # One other slot stepping: fewer than min_busy.
+    async with _busy_worker(address, InferHold(max_ms=5000, min_busy=2), busy=1) as (lone, activity):
         start = time.monotonic()
         await asyncio.wait_for(lone.infer("lone", MODEL, OBS, "put it in", 5000), 5)
         assert time.monotonic() - start < 1.0 and batches.sizes == [1]
@@ -149,8 +144,6 @@ async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) 
         await asyncio.wait_for(asyncio.gather(*tasks), 5)
         assert batches.sizes == [1, 1, 1, 1], "holding off: each request leaves in its own loop turn"
         await off.close()
-    finally:
-        await lone.close()
 
 
 async def test_step_concurrency_bounds_the_slots_working_at_once() -> None:
