@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from services.common.config import EnvReader
+from services.common.cpus import usable_cpus
 from services.env_worker.policy_client import InferHold
 
 #: Longest wait of a held inference request (policy_client.py); docs/throughput.md measures it.
@@ -40,7 +41,8 @@ class EnvWorkerConfig:
     #: How inference requests wait for each other to leave as one batch (ZETTA_INFER_HOLD_MS,
     #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
     infer_hold: InferHold = InferHold()
-    #: How many slots run env work at the same time (ZETTA_STEP_CONCURRENCY; 0: no bound; SlotActivity).
+    #: How many slots run env work at the same time (ZETTA_STEP_CONCURRENCY; default the CPUs this
+    #: process may use, services/common/cpus.py; 0: no bound; SlotActivity).
     step_concurrency: int = 0
 
     @classmethod
@@ -71,7 +73,7 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
-            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", 0, minimum=0),
+            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", usable_cpus(), minimum=0),
             infer_hold=InferHold(
                 max_ms=env.float("ZETTA_INFER_HOLD_MS", DEFAULT_INFER_HOLD_MS, minimum=0.0),
                 min_busy=env.int("ZETTA_INFER_HOLD_MIN_BUSY", InferHold.min_busy, minimum=1),

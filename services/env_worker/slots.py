@@ -51,12 +51,12 @@ class SlotActivity:
     inference requests while enough slots are still busy, so that they leave together as one batch
     (services/env_worker/policy_client.py); it is told when a slot finishes.
 
-    ``concurrency`` bounds how many slots run their work at the same time (0: no bound). The
-    fast step's physics kernel releases the GIL, so two slot threads of one process overlap; more
-    than that contend for the GIL and switch between scenes (8 slot threads of one process on 2
-    cores: 5.6 CPU ms a step unbounded, 4.9 with 2 at a time, 23 % more steps/s), though in the
-    2-core stack the bound also shrank inference batches and did not pay (docs/throughput.md).
-    Only the event loop touches it.
+    ``concurrency`` bounds how many slots run their work at the same time (0: no bound; by
+    default the CPUs the worker may use, ZETTA_STEP_CONCURRENCY). The fast step's physics kernel
+    releases the GIL, so slot threads of one process overlap on as many cores as there are; more
+    threads than cores only contend for the GIL and the cores and are switched in and out mid-step
+    (16 slot threads in each of 2 processes on 2 cores: 14 % more CPU per step than one at a time
+    per process, docs/throughput.md). Only the event loop touches it.
     """
 
     def __init__(self, concurrency: int = 0) -> None:

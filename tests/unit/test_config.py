@@ -9,6 +9,7 @@ from __future__ import annotations
 import pytest
 
 from services.common.config import ConfigError, EnvReader
+from services.common.cpus import usable_cpus
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.policy_client import InferHold
 from services.gateway.config import GatewayConfig
@@ -133,7 +134,7 @@ def test_env_worker_parses_lists_and_resolves_identity() -> None:
     assert cfg.policy_addresses == ("a:1", "b:2")
     assert cfg.families == ("robosuite", "libero")
     assert cfg.slots == 3
-    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2) and cfg.step_concurrency == 0
+    assert cfg.infer_hold == InferHold(max_ms=200.0, min_busy=2) and cfg.step_concurrency == usable_cpus()
     resolved = cfg.resolved(40123)
     assert resolved.port == 40123
     assert resolved.advertise_address == "127.0.0.1:40123"
