@@ -54,12 +54,12 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
                                         policy_url=url, log=logs.append, gateway_probe=probe, failures=failures,
                                         pairing=pairing)
     assert failures == []
-    assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 2), ("stack", 2, 4)]
+    assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 4), ("stack", 2, 8)]
     best = max(stack_rows, key=lambda r: r.steps_per_s).concurrency
     assert len(pairing.results) == 2 == len(limit_calls)
     for p in pairing.results:  # a sweep point's episodes, at the best concurrency
         assert (p["stack"].mode, p["stack"].concurrency, len(p["stack"].episodes)) == (
-            "stack-paired", best, max(2, 2 * best))
+            "stack-paired", best, bs.MIN_EPISODES_PER_LANE * best)
     for row in stack_rows:
         assert all(e.steps == 8 for e in row.episodes)  # the fixed budget, whatever the policy does
         assert row.batch_mean is not None and row.batch_mean >= 1.0
@@ -94,7 +94,7 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     written = bench_report.write_docs(res, tmp_path, "zetta bench rollout --test")
     text = page.read_text()
     assert text.startswith("# keep me") and text.rstrip().endswith("## also kept") and "\nold\n" not in text
-    assert "| stack | 2 | 4 |" in text and "Scale-out model" in text and "Paired rounds" in text
+    assert "| stack | 2 | 8 |" in text and "Scale-out model" in text and "Paired rounds" in text
     assert {p.name for p in written} == {"throughput.md", "throughput-episodes.png", "throughput-steps.png",
                                          "throughput-latency.png", "throughput-cpu.png"}
     assert all(p.stat().st_size > 1000 for p in written)

@@ -65,6 +65,10 @@ DEFAULT_CONCURRENCY = (1, 4, 8, 16, 32, 64)
 DEFAULT_BASELINE_CONCURRENCY = (1, 8)
 #: Batch sizes the scale-out model measures inference at.
 MODEL_BATCHES = (1, 8, 16, 32, 64)
+#: Fewest episodes each lane of a measured stack point runs. The lanes of a point finish at
+#: different times and the early ones idle while the last run; with 4 episodes a lane that ragged
+#: end weighs about half what it does with 2 (a long rollout job has none).
+MIN_EPISODES_PER_LANE = 4
 
 Log = Callable[[str], None]
 
@@ -772,7 +776,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
             for c in concurrency:
                 profile = bool(spec.profile_dir) and c == spec.profile_concurrency
                 try:
-                    rows.append(await point(c, max(episodes, 2 * c), spec.mode, profile))
+                    rows.append(await point(c, max(episodes, MIN_EPISODES_PER_LANE * c), spec.mode, profile))
                 except ZettaError as err:  # e.g. an env worker killed for memory: the rows so far stand
                     failures.append(f"{spec.mode} at concurrency {c}: {err}")
                     log(f"  {spec.mode} c={c} FAILED: {err}")
@@ -787,7 +791,8 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                         if part == "limit":  # in a thread: the loop keeps the sessions' leases alive
                             pair["limit"] = await asyncio.to_thread(pairing.limit)
                         else:
-                            pair["stack"] = await point(best, max(episodes, 2 * best), f"{spec.mode}-paired")
+                            pair["stack"] = await point(best, max(episodes, MIN_EPISODES_PER_LANE * best),
+                                                        f"{spec.mode}-paired")
                     pairing.results.append(pair)
             if gateway_probe is not None and not failures:
                 gateway_probe.update(await _gateway_hop(sessions))
@@ -958,7 +963,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
                    default=list(DEFAULT_BASELINE_CONCURRENCY),
                    help="levels of the no-batching, no-sharing stack (default 1,8; empty: skip it)")
     p.add_argument("--episodes", type=int, default=16,
-                   help="episodes per stack point, at least 2 x its concurrency (default 16)")
+                   help="episodes per stack point, at least 4 x its concurrency (default 16)")
     p.add_argument("--max-steps", type=int, default=120, help="fixed step budget of every episode (default 120)")
     p.add_argument("--naive-episodes", type=int, default=8, help="episodes of the naive loop (default 8)")
     p.add_argument("--naive-fast-episodes", type=int, default=4, help="episodes of the naive-fast loop (default 4)")
