@@ -20,10 +20,14 @@ from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
 log = logging.getLogger(__name__)
 
 
-def _warm_fast_step() -> None:
+def _warm_compiled() -> None:
+    """Compile (or load from numba's cache) the step path's kernels before sessions arrive: a
+    compile holds the GIL, which on a slot's first step would stall the event loop and heartbeats."""
     from services.env_worker import fast_step
+    from services.env_worker.families import task_state
 
     log.info("fast step kernel ready in %.1f s", fast_step.warm_up())
+    log.info("geom box kernel ready in %.1f s", task_state.warm_up())
 
 
 def _gl_renderer() -> str:
@@ -53,7 +57,7 @@ async def main() -> None:
         if reason:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES names {name!r}, which cannot run here: {reason}")
     if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
-        threading.Thread(target=_warm_fast_step, name="fast-step-warm-up", daemon=True).start()
+        threading.Thread(target=_warm_compiled, name="kernel-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families, cfg.step_concurrency)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms, cfg.infer_hold,
                           busy=lambda: table.activity.busy)

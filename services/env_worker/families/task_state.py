@@ -77,6 +77,15 @@ def _geoms_box(aabb: np.ndarray, xmat: np.ndarray, xpos: np.ndarray, ids: np.nda
     return out
 
 
+def warm_up() -> float:
+    """Compile :func:`_geoms_box` (or load it from numba's disk cache); returns the seconds it took."""
+    import time
+
+    start = time.perf_counter()
+    _geoms_box(np.zeros((1, 6)), np.eye(3).reshape(1, 9), np.zeros((1, 3)), np.zeros(1, dtype=np.int64))
+    return time.perf_counter() - start
+
+
 def site_box(model: Any, data: Any, site: int) -> np.ndarray:
     """World axis-aligned box around a site (LIBERO regions are box or cylinder sites)."""
     size = model.site_size[site]
