@@ -55,7 +55,8 @@ def settings(pairs: list[str]) -> dict[str, str]:
 
 
 async def measure(args: argparse.Namespace) -> dict[str, list[Window]]:
-    """Start both stacks, then alternate windows of ``2 x concurrency`` episodes on each."""
+    """Start both stacks, then alternate windows of 4 episodes a lane on each (the sweep's
+    ``MIN_EPISODES_PER_LANE``)."""
     envs = {"A": settings(args.a), "B": settings(args.b)}
     slots = -(-args.concurrency // args.env_workers)
     stacks: dict[str, LocalStack] = {}
@@ -74,7 +75,7 @@ async def measure(args: argparse.Namespace) -> dict[str, list[Window]]:
             sessions = {n: await bs.create_sessions(g, args.concurrency, config, 2 * args.env_workers, print)
                         for n, g in gateways.items()}
             first = 0
-            episodes = 2 * args.concurrency
+            episodes = bs.MIN_EPISODES_PER_LANE * args.concurrency
             for r in range(args.rounds):
                 for name in ("A", "B") if r % 2 == 0 else ("B", "A"):
                     stack = stacks[name]
@@ -101,7 +102,7 @@ def report(args: argparse.Namespace, windows: dict[str, list[Window]]) -> str:
     """Medians of each stack and of the per-round ratios."""
     a, b = windows["A"], windows["B"]
     lines = [f"bench_stack_ab: concurrency {args.concurrency}, {args.env_workers} env workers, {len(a)} rounds "
-             f"of {2 * args.concurrency} episodes; load average {os.getloadavg()[0]:.1f} at the end"]
+             f"of {bs.MIN_EPISODES_PER_LANE * args.concurrency} episodes; load average {os.getloadavg()[0]:.1f} at the end"]
     for name, ws, env in (("A", a, args.a), ("B", b, args.b)):
         lines.append(f"  {name} ({' '.join(env) or 'defaults'}): median {statistics.median(w.steps_per_s for w in ws):.0f} "
                      f"steps/s, {statistics.median(w.cpu_ms_per_step for w in ws):.2f} CPU ms per step")

@@ -55,7 +55,7 @@ class SlotActivity:
     default the CPUs the worker may use, ZETTA_STEP_CONCURRENCY). The fast step's physics kernel
     releases the GIL, so slot threads of one process overlap on as many cores as there are; more
     threads than cores only contend for the GIL and the cores and are switched in and out mid-step
-    (16 slot threads in each of 2 processes on 2 cores: 14 % more CPU per step than one at a time
+    (16 slot threads in each of 2 processes on 2 cores: 12 % more CPU per step than one at a time
     per process, docs/throughput.md). Only the event loop touches it.
     """
 

@@ -228,8 +228,8 @@ class LocalStack:
         """Each env worker's ZETTA_STEP_CONCURRENCY: the caller's, else this machine's usable CPUs
         shared among the workers (at least one each). Every worker of this stack runs on the same
         cores, so more slots stepping at once than a worker's share only contend for them: on 2
-        cores with 2 workers of 16 slots each, one at a time per worker stepped 11 % more steps/s at
-        14 % less CPU per step than no bound (docs/throughput.md)."""
+        cores with 2 workers of 16 slots each, one at a time per worker stepped 10 % more steps/s at
+        11 % less CPU per step than no bound (docs/throughput.md)."""
         chosen = self._base_env().get("ZETTA_STEP_CONCURRENCY")
         return chosen if chosen else str(max(1, usable_cpus() // max(1, self.env_workers)))
 
