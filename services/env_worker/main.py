@@ -20,13 +20,16 @@ from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
 log = logging.getLogger(__name__)
 
 
-def _warm_compiled() -> None:
+def _warm_compiled(fast_step_kernel: bool) -> None:
     """Compile (or load from numba's cache) the step path's kernels before sessions arrive: a
-    compile holds the GIL, which on a slot's first step would stall the event loop and heartbeats."""
-    from services.env_worker import fast_step
+    compile holds the GIL, which on a slot's first step would stall the event loop and heartbeats.
+    The geom box kernel serves every family's task tensors; the fast step's only libero and robosuite."""
     from services.env_worker.families import task_state
 
-    log.info("fast step kernel ready in %.1f s", fast_step.warm_up())
+    if fast_step_kernel:
+        from services.env_worker import fast_step
+
+        log.info("fast step kernel ready in %.1f s", fast_step.warm_up())
     log.info("geom box kernel ready in %.1f s", task_state.warm_up())
 
 
@@ -56,8 +59,8 @@ async def main() -> None:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES: {exc}") from None
         if reason:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES names {name!r}, which cannot run here: {reason}")
-    if {"libero", "robosuite"} & set(cfg.families):  # their fast step path has a compiled kernel
-        threading.Thread(target=_warm_compiled, name="kernel-warm-up", daemon=True).start()
+    fast_step_kernel = bool({"libero", "robosuite"} & set(cfg.families))  # their fast step path is compiled
+    threading.Thread(target=_warm_compiled, args=(fast_step_kernel,), name="kernel-warm-up", daemon=True).start()
     table = SlotTable(cfg.slots, cfg.families, cfg.step_concurrency)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms, cfg.infer_hold,
                           busy=lambda: table.activity.busy)
