@@ -62,8 +62,13 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
             "stack-paired", best, bs.MIN_EPISODES_PER_LANE * best)
     for row in stack_rows:
         assert all(e.steps == 8 for e in row.episodes)  # the fixed budget, whatever the policy does
+        # The span with every lane busy: the env workers' own step count, within the point's.
+        assert row.busy is not None and 0 < row.busy.wall_s <= row.wall_s and row.busy.cpu_s > 0
+        assert 0 < row.busy.steps <= row.steps and row.busy_cpu_ms_per_step is not None
         assert row.batch_mean is not None and row.batch_mean >= 1.0
         assert row.usage is not None and row.usage.own_cpu_pct > 0 and row.usage.rss_mib > 100
+    one = stack_rows[0]  # one lane is busy until its last episode ends: the span is the whole point
+    assert one.busy is not None and one.busy.steps == one.steps
     assert probe["observe_p50_ms"] > 0
 
     from services.policy_worker.models.base import load_model
@@ -160,6 +165,14 @@ def test_paired_rounds_judge_the_limit_target_on_their_medians() -> None:
     res.paired[0]["stack"].usage.cpu_s = 4.0 / 0.75  # the CPU median falls to 79%: not met
     assert bench_report.targets(res)[1][2] is False
     assert bench_report.paired_table(res).count("\n") == 1 + len(res.paired)
+    # A round is judged on the span with every lane busy: 700 of its 1000 steps in 0.7 s at 4.0/0.82
+    # CPU s per 1000 steps, while its whole window (a ragged end) shows 75% and 75%.
+    res.paired[0]["stack"] = bs.Row("stack-paired", 8, [bs.Episode(i, False, 100, 1.0) for i in range(10)], 1 / 0.75,
+                                    bs.Usage(100.0, 90.0, None, 1.0, cpu_s=4.0 / 0.75),
+                                    busy=bs.Busy(0.7 / 0.85, 700, 0.7 * 4.0 / 0.82))
+    (_, measured, ok) = bench_report.targets(res)[1]
+    assert ok is True and "steps/s 85%, CPU cost per step 82%" in measured
+    assert "| 1 | 1000 | 850 | 85% |" in bench_report.paired_table(res)
 
 
 def test_latency_growth_floor_from_littles_law() -> None:

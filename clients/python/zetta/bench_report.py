@@ -182,31 +182,36 @@ def _limit_target(res: Results) -> tuple[str, str, bool | None]:
 
 def paired_shares(res: Results) -> tuple[float, float, int, int] | None:
     """Medians over the paired rounds of the stack's steps/s over the limit's and of the limit's CPU
-    per step over the stack's, the concurrency and the number of rounds (None without rounds)."""
+    per step over the stack's, the concurrency and the number of rounds (None without rounds).
+
+    The stack's figures are those of the span while every lane was busy (:class:`~zetta.bench_sweep.Busy`),
+    steady like the limit's window, in which every process steps throughout.
+    """
     pairs = [p for p in res.paired if p["limit"].steps_per_s and p["limit"].cpu_ms_per_step
-             and p["stack"].cpu_ms_per_step]
+             and p["stack"].busy_cpu_ms_per_step]
     if not pairs:
         return None
-    steps = statistics.median(p["stack"].steps_per_s / p["limit"].steps_per_s for p in pairs)
-    cpu = statistics.median(p["limit"].cpu_ms_per_step / p["stack"].cpu_ms_per_step for p in pairs)
+    steps = statistics.median(p["stack"].busy_steps_per_s / p["limit"].steps_per_s for p in pairs)
+    cpu = statistics.median(p["limit"].cpu_ms_per_step / p["stack"].busy_cpu_ms_per_step for p in pairs)
     return steps, cpu, pairs[0]["stack"].concurrency, len(pairs)
 
 
 PAIRED_HEADER = ("round", "limit steps/s", "stack steps/s", "% of limit", "limit CPU ms/step", "stack CPU ms/step",
-                 "% of limit, CPU", "stack mean batch", "load")
+                 "% of limit, CPU", "stack busy s / window s", "stack steps/s, whole window", "stack mean batch", "load")
 
 
 def paired_rows(res: Results) -> list[tuple[str, ...]]:
-    """The paired rounds' cells, one tuple per round."""
+    """The paired rounds' cells, one tuple per round (the stack's while every lane was busy)."""
     out = []
     for i, p in enumerate(res.paired, 1):
         lim, st = p["limit"], p["stack"]
+        steps, cpu = st.busy_steps_per_s, st.busy_cpu_ms_per_step
         out.append((
-            str(i), f"{lim.steps_per_s:.0f}", f"{st.steps_per_s:.0f}",
-            _fmt(100 * st.steps_per_s / lim.steps_per_s if lim.steps_per_s else None, ".0f", "%"),
-            _fmt(lim.cpu_ms_per_step, ".2f"), _fmt(st.cpu_ms_per_step, ".2f"),
-            _fmt(100 * lim.cpu_ms_per_step / st.cpu_ms_per_step if lim.cpu_ms_per_step and st.cpu_ms_per_step
-                 else None, ".0f", "%"),
+            str(i), f"{lim.steps_per_s:.0f}", f"{steps:.0f}",
+            _fmt(100 * steps / lim.steps_per_s if lim.steps_per_s else None, ".0f", "%"),
+            _fmt(lim.cpu_ms_per_step, ".2f"), _fmt(cpu, ".2f"),
+            _fmt(100 * lim.cpu_ms_per_step / cpu if lim.cpu_ms_per_step and cpu else None, ".0f", "%"),
+            f"{st.busy.wall_s if st.busy else st.wall_s:.0f} / {st.wall_s:.0f}", f"{st.steps_per_s:.0f}",
             _fmt(st.batch_mean), f"{max(lim.load, st.load):.1f}",
         ))
     return out
@@ -463,7 +468,9 @@ def _paired_section(res: Results) -> str:
         return ""
     c = res.paired[0]["stack"].concurrency
     return (f"\nPaired rounds: the `limit` row and the stack at its best concurrency ({c}) measured one right "
-            "after the other, the order alternating (what the limit target is judged on):\n\n"
+            "after the other, the order alternating (what the limit target is judged on); the stack's steps/s and "
+            "CPU per step are those of the span while every lane had an episode running, which the window's "
+            "whole steps/s follows:\n\n"
             f"{paired_table(res)}\n")
 
 

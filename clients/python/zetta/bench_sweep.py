@@ -103,6 +103,20 @@ class Usage:
 
 
 @dataclass
+class Busy:
+    """A stack point's span while every lane had an episode running: from the start until the first
+    lane found no episode left. The lanes finish at different times and the early ones idle while
+    the last run, a ragged end a long rollout job does not have and the ``limit`` rows' windows (every
+    process stepping throughout) do not have either; this span is the point's steady state."""
+
+    wall_s: float
+    #: Env steps executed in the span (from the env workers' metrics, see :func:`env_steps`).
+    steps: int
+    #: CPU seconds of the point's own processes in the span.
+    cpu_s: float
+
+
+@dataclass
 class Row:
     """One line of the table."""
 
@@ -118,6 +132,8 @@ class Row:
     note: str = ""
     #: Mean time (ms) an inference request waited in the policy worker's queue over the row.
     queue_wait_ms: float | None = None
+    #: Stack points: the span with every lane busy (None for rows measured in steady windows).
+    busy: Busy | None = None
 
     @property
     def successes(self) -> int:
@@ -140,13 +156,28 @@ class Row:
         """CPU time of the row's own processes per env step: its cost whatever share of the machine it got."""
         return 1000.0 * self.usage.cpu_s / self.steps if self.usage and self.steps else None
 
+    @property
+    def busy_steps_per_s(self) -> float:
+        """Steps/s while every lane was busy; the whole row's for rows without a :class:`Busy` span."""
+        if self.busy is None or self.busy.wall_s <= 0 or not self.busy.steps:
+            return self.steps_per_s
+        return self.busy.steps / self.busy.wall_s
+
+    @property
+    def busy_cpu_ms_per_step(self) -> float | None:
+        """CPU ms per step while every lane was busy; the whole row's without a :class:`Busy` span."""
+        if self.busy is None or not self.busy.steps:
+            return self.cpu_ms_per_step
+        return 1000.0 * self.busy.cpu_s / self.busy.steps
+
     def latency(self, q: float) -> float:
         return float(np.percentile([e.latency_s for e in self.episodes], q)) if self.episodes else math.nan
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
         out.update(episodes_per_min=self.episodes_per_min, steps_per_s=self.steps_per_s, cpu_ms_per_step=self.cpu_ms_per_step,
-                   p50_s=self.latency(50), p99_s=self.latency(99), successes=self.successes)
+                   p50_s=self.latency(50), p99_s=self.latency(99), successes=self.successes,
+                   busy_steps_per_s=self.busy_steps_per_s, busy_cpu_ms_per_step=self.busy_cpu_ms_per_step)
         return out
 
 
@@ -277,13 +308,20 @@ class ResourceMeter:
         self._t0 = time.perf_counter()
         self._gpu.start()
 
+    def _since_start(self, now: dict[str, dict[int, float]]) -> dict[str, float]:
+        return {name: sum(t - self._cpu.get(name, {}).get(pid, 0.0) for pid, t in times.items())
+                for name, times in now.items()}
+
+    def mark(self) -> tuple[float, float]:
+        """(seconds, CPU seconds of the named processes) since :meth:`start`, the span going on."""
+        return time.perf_counter() - self._t0, sum(self._since_start(self._trees(self._procs())).values())
+
     def stop(self) -> Usage:
         wall = max(time.perf_counter() - self._t0, 1e-9)
         busy, total = _machine_cpu()
         machine = 100.0 * (busy - self._machine[0]) / max(total - self._machine[1], 1e-9)
         now = self._trees(self._procs())
-        by_process = {name: sum(t - self._cpu.get(name, {}).get(pid, 0.0) for pid, t in times.items())
-                      for name, times in now.items()}
+        by_process = self._since_start(now)
         rss = 0
         page = os.sysconf("SC_PAGE_SIZE")
         for times in now.values():
@@ -594,6 +632,21 @@ def histogram_totals(url: str, model: str) -> dict[str, tuple[float, float]]:
     return out
 
 
+def env_steps(urls: Sequence[str]) -> int:
+    """Env steps the env workers at ``urls`` executed so far, all families: the count of their step
+    duration histogram, observed after every step (``zetta_env_steps_total`` grows a chunk at a time)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from zetta.hops import scrape
+
+    total = 0.0
+    for url in urls:
+        for family in text_string_to_metric_families(scrape(url)):
+            if family.name == "zetta_env_step_duration_seconds":
+                total += sum(s.value for s in family.samples if s.name.endswith("_count"))
+    return int(total)
+
+
 def histogram_mean(before: dict[str, tuple[float, float]], after: dict[str, tuple[float, float]],
                    name: str) -> float | None:
     """Mean of one histogram's observations between two :func:`histogram_totals`; None without any."""
@@ -616,20 +669,28 @@ def balanced(infos: Sequence[Any], n: int) -> list[str]:
 
 
 async def run_lanes(gateway: Any, ids: Sequence[str], episodes: int, task: str, max_steps: int,
-                    first_index: int) -> tuple[list[Episode], float]:
-    """``len(ids)`` lanes, each running ``run_episode`` back to back on its own session."""
+                    first_index: int, on_first_idle: Callable[[], None] | None = None) -> tuple[list[Episode], float]:
+    """``len(ids)`` lanes, each running ``run_episode`` back to back on its own session, drawing
+    episodes from one queue; ``on_first_idle`` is called once, when a lane first finds it empty (from
+    then on lanes go idle one by one)."""
     from zetta.client import Session
 
     counter = iter(range(first_index, first_index + episodes))
     done: list[Episode] = []
+    idle_seen = False
 
     async def lane(sid: str) -> None:
+        nonlocal idle_seen
         session = Session(gateway, sid)
         for i in counter:
             t = time.perf_counter()
             seed, init = episode_key(i)
             s = await session.run_episode(task=task, seed=seed, init_state_index=init, max_steps=max_steps)
             done.append(Episode(i, s.success, s.steps, time.perf_counter() - t))
+        if not idle_seen:
+            idle_seen = True
+            if on_first_idle is not None:
+                on_first_idle()
 
     t0 = time.perf_counter()
     await asyncio.gather(*(lane(sid) for sid in ids))
@@ -744,6 +805,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
     rows: list[Row] = []
     async with Gateway(stack.gateway_address) as gw:
         sessions = await create_sessions(gw, max(concurrency), env_config(task, max_steps), 2 * spec.env_workers, log)
+        env_urls = [svc.metrics_url for name, svc in stack.services.items() if name.startswith("env-")]
         first = 0
 
         async def point(c: int, n: int, mode: str, profile: bool = False) -> Row:
@@ -754,9 +816,16 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
             before = histogram_totals(policy_url, spec.model)
             if profiler is not None:
                 profiler.start()
+            steps0 = env_steps(env_urls)
             meter.start()
+            busy: list[Busy] = []
+
+            def first_idle() -> None:
+                wall_s, cpu_s = meter.mark()
+                busy.append(Busy(wall_s, env_steps(env_urls) - steps0, cpu_s))
+
             try:
-                done, wall = await run_lanes(gw, ids, n, task, max_steps, first)
+                done, wall = await run_lanes(gw, ids, n, task, max_steps, first, first_idle)
             finally:
                 if profiler is not None:
                     log(f"  profile of {mode} c={c}: {profiler.stop()}")
@@ -765,9 +834,11 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
             first += n
             wait = histogram_mean(before, after, "zetta_policy_queue_wait_seconds")
             row = Row(mode, c, done, wall, usage, histogram_mean(before, after, "zetta_policy_batch_size"),
-                      load_average(), queue_wait_ms=None if wait is None else 1000.0 * wait)
+                      load_average(), queue_wait_ms=None if wait is None else 1000.0 * wait,
+                      busy=busy[0] if busy else None)
             log(f"  {mode} c={c}: {n} episodes in {wall:.1f} s = {row.episodes_per_min:.1f}/min, "
-                f"{row.steps_per_s:.0f} steps/s, p50 {row.latency(50):.2f} s, p99 {row.latency(99):.2f} s, "
+                f"{row.steps_per_s:.0f} steps/s ({row.busy_steps_per_s:.0f} while every lane was busy, "
+                f"{row.busy.wall_s if row.busy else wall:.1f} s), p50 {row.latency(50):.2f} s, p99 {row.latency(99):.2f} s, "
                 f"batch {row.batch_mean or 0:.1f}, queue wait {row.queue_wait_ms or 0:.1f} ms, CPU own "
                 f"{usage.own_cpu_pct:.0f}% machine {usage.machine_cpu_pct:.0f}%, load {row.load:.2f}")
             return row
@@ -867,8 +938,9 @@ class Results:
         """A run written by ``--json``, to render its report again."""
         def row(r: dict[str, Any]) -> Row:
             usage = Usage(**r["usage"]) if r.get("usage") else None
+            busy = Busy(**r["busy"]) if r.get("busy") else None
             return Row(r["mode"], r["concurrency"], [Episode(**e) for e in r["episodes"]], r["wall_s"], usage,
-                       r.get("batch_mean"), r.get("load", 0.0), r.get("note", ""), r.get("queue_wait_ms"))
+                       r.get("batch_mean"), r.get("load", 0.0), r.get("note", ""), r.get("queue_wait_ms"), busy)
 
         fields = {k: data[k] for k in ("args", "machine", "started", "load_start", "load_end", "policy_ops", "chunk",
                                        "gateway", "failures", "elapsed_s", "limit_actions") if k in data}
