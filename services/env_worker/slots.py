@@ -9,7 +9,6 @@ canonical config) are kept here too, so every slot of the same config reuses one
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import threading
 import uuid
 from collections.abc import Callable, Mapping, Sequence
@@ -56,22 +55,30 @@ class SlotActivity:
     releases the GIL, so slot threads of one process overlap on as many cores as there are; more
     threads than cores only contend for the GIL and the cores and are switched in and out mid-step
     (16 slot threads in each of 2 processes on 2 cores: 12 % more CPU per step than one at a time
-    per process, docs/throughput.md). Only the event loop touches it.
+    per process, docs/throughput.md).
+
+    The turns are taken on the slot threads (:meth:`in_turn`), not on the event loop: work is
+    handed to its thread at once and waits there, so a finishing slot wakes the next one directly.
+    Taken on the event loop, each handoff waited for the loop to see the finished work, release the
+    turn, resume the next slot's coroutine and submit its work, while the core idled.
+    ``busy`` and the listeners are touched only by the event loop.
     """
 
     def __init__(self, concurrency: int = 0) -> None:
         self.busy = 0
         self.concurrency = concurrency
-        self._turns: asyncio.Semaphore | None = None
+        self._turns = threading.Semaphore(concurrency) if concurrency else None
         self._listeners: list[Callable[[], None]] = []
 
-    def turn(self) -> asyncio.Semaphore | contextlib.nullcontext[None]:
-        """What a slot's work runs under: a turn among ``concurrency``, or no bound."""
-        if not self.concurrency:
-            return contextlib.nullcontext()
-        if self._turns is None:  # made on the event loop that runs the slots
-            self._turns = asyncio.Semaphore(self.concurrency)
-        return self._turns
+    def in_turn(self, abandoned: threading.Event, fn: Callable[..., T], *args: Any) -> T:
+        """On a slot thread: ``fn(*args)`` once a turn is free, unless the caller gave up waiting
+        for it (``abandoned``), in which case nothing runs."""
+        if self._turns is None:
+            return fn(*args)
+        with self._turns:
+            if abandoned.is_set():
+                raise asyncio.CancelledError("the caller stopped waiting before the slot's turn came")
+            return fn(*args)
 
     def listen(self, callback: Callable[[], None]) -> None:
         """Call ``callback`` (on the event loop) whenever a slot finishes its work."""
@@ -105,11 +112,16 @@ class BoundSlot:
     activity: SlotActivity = field(default_factory=SlotActivity)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run ``fn`` on this slot's pinned thread."""
+        """Run ``fn`` on this slot's pinned thread, in a turn of the worker's step bound; a call
+        cancelled before its turn came runs nothing (once begun, ``fn`` runs to its end)."""
+        abandoned = threading.Event()
         self.activity.enter()
         try:
-            async with self.activity.turn():
-                return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+            return await asyncio.get_running_loop().run_in_executor(
+                self.executor, self.activity.in_turn, abandoned, fn, *args)
+        except asyncio.CancelledError:
+            abandoned.set()
+            raise
         finally:
             self.activity.leave()
 
