@@ -12,7 +12,6 @@ import json
 import os
 import queue
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +44,8 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     url = shared_stack.services["policy-0"].metrics_url
     limit_calls: list[float] = []
 
-    def limit_now() -> bs.Row:  # stands in for run_limit's processes, which the slow test runs
-        limit_calls.append(time.monotonic())
+    def limit_now(seconds: float) -> bs.Row:  # stands in for run_limit's processes, which the slow test runs
+        limit_calls.append(seconds)
         return bs.Row("limit", 1, [bs.Episode(0, False, 8, 0.05)], 0.05)
 
     pairing = bs.Pairing(2, limit_now)
@@ -57,6 +56,10 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     assert [(r.mode, r.concurrency, len(r.episodes)) for r in stack_rows] == [("stack", 1, 4), ("stack", 2, 8)]
     best = max(stack_rows, key=lambda r: r.steps_per_s).concurrency
     assert len(pairing.results) == 2 == len(limit_calls)
+    # Each limit window is as long as the stack's window before it: the best sweep point's, then the
+    # round's own (round 2 measures the stack first).
+    best_row = max(stack_rows, key=lambda r: r.steps_per_s)
+    assert limit_calls == [best_row.wall_s, pairing.results[1]["stack"].wall_s]
     for p in pairing.results:  # a sweep point's episodes, at the best concurrency
         assert (p["stack"].mode, p["stack"].concurrency, len(p["stack"].episodes)) == (
             "stack-paired", best, bs.MIN_EPISODES_PER_LANE * best)
@@ -113,13 +116,14 @@ def test_limit_pool_measures_the_same_processes_again_and_stops_early() -> None:
     logs: list[str] = []
     pool = bs.LimitPool("fast", bs.DEFAULT_TASK, 8, 0.3, 1, rounds=3)
     try:
-        first, second = pool.measure(logs.append), pool.measure(logs.append)
+        first, second = pool.measure(logs.append), pool.measure(logs.append, seconds=1.2)
     finally:
         pool.close()
     for row in (first, second):
         assert row.mode == "limit" and row.steps >= 8 and all(e.steps == 8 for e in row.episodes)
         assert row.cpu_ms_per_step is not None and row.cpu_ms_per_step > 0
     assert second.episodes and len(logs) == 2
+    assert first.wall_s < 1.0 <= 1.2 <= second.wall_s  # the window the parent asked for, each time
     assert all(not c.is_alive() for c in pool._children), "the third round's wait was released"
 
 

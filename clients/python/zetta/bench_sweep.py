@@ -410,7 +410,7 @@ def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
     return [(episode_key(seed * 1000 + k), actions) for k in range(count)]
 
 
-def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int, barrier: Any, out: Any,
+def limit_child(kind: str, task: str, max_steps: int, seconds: Any, seed: int, barrier: Any, out: Any,
                 replays: Sequence[Replay] = (), chunk: int = 8, rounds: int = 1, ready: Any = None) -> None:
     """One core's worth of stepping with no infrastructure: reset, an episode's actions, repeat.
 
@@ -422,9 +422,10 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
     reset replays the settle steps (no settled snapshot is reused), as the first reset of a key
     does in the stacks, whose episodes never repeat a key on one env.
 
-    ``rounds`` windows of ``seconds`` each, every one started by ``barrier`` and reported on ``out``,
-    so one set of processes (built once) can be measured again and again; an aborted barrier ends it.
-    ``ready`` (a queue) hears when the set-up is done.
+    ``rounds`` windows of ``seconds`` each (a number, or a shared ``multiprocessing.Value`` read as
+    each window starts, so the parent can size every window), every one started by ``barrier`` and
+    reported on ``out``, so one set of processes (built once) can be measured again and again; an
+    aborted barrier ends it. ``ready`` (a queue) hears when the set-up is done.
     """
     import threading
 
@@ -448,9 +449,10 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: float, seed: int,
     try:
         for _ in range(rounds):
             barrier.wait()
+            window = float(seconds.value) if hasattr(seconds, "value") else float(seconds)
             cpu0, start = time.process_time(), time.time()
             episodes = []
-            while time.time() - start < seconds:
+            while time.time() - start < window:
                 t = time.perf_counter()
                 (key_seed, init), actions = replays[k % len(replays)]
                 settled.forget(slot._env)
@@ -480,26 +482,30 @@ class LimitPool:
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")
-        self.kind, self.procs, self.seconds = kind, procs, seconds
+        self.kind, self.procs = kind, procs
+        self._seconds = ctx.Value("d", seconds)  # every window's length, which measure() may change
         self._barrier = ctx.Barrier(procs + 1)
         self._out = ctx.Queue()
         ready = ctx.Queue()
-        self._children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, seconds, i + 1, self._barrier,
-                                                                self._out, replays, chunk, rounds, ready))
+        self._children = [ctx.Process(target=limit_child, args=(kind, task, max_steps, self._seconds, i + 1,
+                                                                self._barrier, self._out, replays, chunk, rounds,
+                                                                ready))
                           for i in range(procs)]
         for c in self._children:
             c.start()
         for _ in self._children:
             ready.get(timeout=600)
 
-    def measure(self, log: Log) -> Row:
-        """One window, all processes stepping at once; aggregated over the span from the first start
-        to the last end."""
+    def measure(self, log: Log, seconds: float = 0.0) -> Row:
+        """One window (of ``seconds``, or the constructor's), all processes stepping at once;
+        aggregated over the span from the first start to the last end."""
         children = self._children
+        if seconds > 0:
+            self._seconds.value = seconds
         meter = ResourceMeter(lambda: {f"{self.kind}-{i}": c.pid for i, c in enumerate(children) if c.pid is not None})
         self._barrier.wait(timeout=600)
         meter.start()
-        results = [self._out.get(timeout=self.seconds + 600) for _ in children]
+        results = [self._out.get(timeout=self._seconds.value + 600) for _ in children]
         usage = meter.stop()
         start = min(r["start"] for r in results)
         end = max(r["end"] for r in results)
@@ -853,17 +859,19 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                     log(f"  {spec.mode} c={c} FAILED: {err}")
                     break
             if pairing is not None and rows and not failures:
-                best = max(rows, key=lambda r: r.steps_per_s).concurrency
+                best_row = max(rows, key=lambda r: r.steps_per_s)
+                best, last_wall = best_row.concurrency, best_row.wall_s
                 log(f"  paired rounds at the best concurrency ({best}): limit and stack in turn")
                 for r in range(pairing.rounds):
                     stack_first = r % 2 == 1  # alternate the order, so drifting load weighs on both
                     pair: dict[str, Row] = {}
                     for part in (("stack", "limit") if stack_first else ("limit", "stack")):
                         if part == "limit":  # in a thread: the loop keeps the sessions' leases alive
-                            pair["limit"] = await asyncio.to_thread(pairing.limit)
+                            pair["limit"] = await asyncio.to_thread(pairing.limit, pairing.seconds or last_wall)
                         else:
                             pair["stack"] = await point(best, max(episodes, MIN_EPISODES_PER_LANE * best),
                                                         f"{spec.mode}-paired")
+                            last_wall = pair["stack"].wall_s
                     pairing.results.append(pair)
             if gateway_probe is not None and not failures:
                 gateway_probe.update(await _gateway_hop(sessions))
@@ -883,7 +891,11 @@ class Pairing:
     """
 
     rounds: int
-    limit: Callable[[], Row]
+    #: Measures the limit for a window of the given seconds.
+    limit: Callable[[float], Row]
+    #: Seconds of each limit window; 0: as long as the stack's last window (the sweep's point at
+    #: first), so that both sides of a round average the machine's drift over the same time.
+    seconds: float = 0.0
     results: list[dict[str, Row]] = field(default_factory=list)
 
 
@@ -984,10 +996,11 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
               for kind in ("fast", "obs")]
     slots = -(-max(args.concurrency) // args.env_workers)
     profile_c = args.profile_concurrency or (16 if 16 in args.concurrency else max(args.concurrency))
-    pool = LimitPool("fast", args.task, args.max_steps, args.paired_seconds, cores, replays, res.chunk,
-                     args.paired_rounds) if args.paired_rounds else None
+    pool = LimitPool("fast", args.task, args.max_steps, args.paired_seconds or args.limit_seconds, cores, replays,
+                     res.chunk, args.paired_rounds) if args.paired_rounds else None
     try:
-        pairing = Pairing(args.paired_rounds, functools.partial(pool.measure, log)) if pool is not None else None
+        pairing = (Pairing(args.paired_rounds, functools.partial(pool.measure, log), args.paired_seconds)
+                   if pool is not None else None)
         stack = run_stack(StackSpec("stack", args.env_workers, slots, args.model, profile_dir=args.profile,
                                     profile_concurrency=profile_c),
                           args.concurrency, args.episodes, args.task, args.max_steps, log, res.failures, res.gateway,
@@ -1044,8 +1057,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--paired-rounds", type=int, default=6,
                    help="rounds of the limit and the stack's best point measured one after the other, the limit "
                         "target judged on their medians (default 6; 0: judge on the sweep's rows)")
-    p.add_argument("--paired-seconds", type=float, default=6.0,
-                   help="seconds of each paired round's limit window (default 6)")
+    p.add_argument("--paired-seconds", type=float, default=0.0,
+                   help="seconds of each paired round's limit window (default 0: as long as the stack's last window)")
     p.add_argument("--env-workers", type=int, default=2, help="env worker processes of the stack (default 2)")
     p.add_argument("--model", default=DEFAULT_MODEL, help=f"served policy (default {DEFAULT_MODEL})")
     p.add_argument("--task", default=DEFAULT_TASK, help=f"LIBERO-Goal task (default {DEFAULT_TASK})")
@@ -1061,8 +1074,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1 or args.naive_episodes < 0 or args.naive_fast_episodes < 0:
         p.error("--episodes and --max-steps must be >= 1, naive episode counts >= 0")
-    if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0 or args.paired_seconds <= 0:
-        p.error("--env-workers must be >= 1, --limit-seconds and --paired-seconds > 0, --paired-rounds >= 0")
+    if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0 or args.paired_seconds < 0:
+        p.error("--env-workers must be >= 1, --limit-seconds > 0, --paired-seconds and --paired-rounds >= 0")
     return args
 
 
