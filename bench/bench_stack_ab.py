@@ -10,6 +10,11 @@ machine but only one steps at a time.
 
     python bench/bench_stack_ab.py --a ZETTA_STEP_CONCURRENCY=0 --b ZETTA_STEP_CONCURRENCY=1
     python bench/bench_stack_ab.py --b MALLOC_ARENA_MAX=1 --rounds 8 --concurrency 16
+    python bench/bench_stack_ab.py --a-rev HEAD~1     # the services of the previous commit against this tree's
+
+``--a-rev``/``--b-rev`` run a stack's services from another git revision (exported with ``git
+archive``, its stubs built from its own protos; the working tree is not touched), so a code change
+is measured the same way as a setting.
 
 Episodes are those of ``zetta bench rollout`` (LIBERO-Goal, state only, fixed step budget, the
 shipped policy); CPU is every process of the stack and the client, from /proc.
@@ -27,8 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
+sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python"), str(ROOT / "bench")]
 
+import trees  # noqa: E402
 from zetta import bench_sweep as bs  # noqa: E402
 from zetta.client import Gateway  # noqa: E402
 from zetta.local_stack import LocalStack  # noqa: E402
@@ -54,10 +60,18 @@ def settings(pairs: list[str]) -> dict[str, str]:
     return out
 
 
-async def measure(args: argparse.Namespace) -> dict[str, list[Window]]:
+def stack_envs(args: argparse.Namespace, scratch: Path) -> dict[str, dict[str, str]]:
+    """Each stack's extra environment: its settings, and the import path of its revision if it has one."""
+    envs = {"A": settings(args.a), "B": settings(args.b)}
+    for name, rev in (("A", args.a_rev), ("B", args.b_rev)):
+        if rev:
+            envs[name].update(trees.import_env(trees.export(rev, scratch / name)))
+    return envs
+
+
+async def measure(args: argparse.Namespace, envs: dict[str, dict[str, str]]) -> dict[str, list[Window]]:
     """Start both stacks, then alternate windows of 4 episodes a lane on each (the sweep's
     ``MIN_EPISODES_PER_LANE``)."""
-    envs = {"A": settings(args.a), "B": settings(args.b)}
     slots = -(-args.concurrency // args.env_workers)
     stacks: dict[str, LocalStack] = {}
     windows: dict[str, list[Window]] = {"A": [], "B": []}
@@ -103,8 +117,9 @@ def report(args: argparse.Namespace, windows: dict[str, list[Window]]) -> str:
     a, b = windows["A"], windows["B"]
     lines = [f"bench_stack_ab: concurrency {args.concurrency}, {args.env_workers} env workers, {len(a)} rounds "
              f"of {bs.MIN_EPISODES_PER_LANE * args.concurrency} episodes; load average {os.getloadavg()[0]:.1f} at the end"]
-    for name, ws, env in (("A", a, args.a), ("B", b, args.b)):
-        lines.append(f"  {name} ({' '.join(env) or 'defaults'}): median {statistics.median(w.steps_per_s for w in ws):.0f} "
+    for name, ws, env, rev in (("A", a, args.a, args.a_rev), ("B", b, args.b, args.b_rev)):
+        label = " ".join([*([f"revision {rev}"] if rev else []), *env]) or "defaults"
+        lines.append(f"  {name} ({label}): median {statistics.median(w.steps_per_s for w in ws):.0f} "
                      f"steps/s, {statistics.median(w.cpu_ms_per_step for w in ws):.2f} CPU ms per step")
     steps = statistics.median(y.steps_per_s / x.steps_per_s for x, y in zip(a, b))
     cpu = statistics.median(y.cpu_ms_per_step / x.cpu_ms_per_step for x, y in zip(a, b))
@@ -118,6 +133,8 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--a", nargs="*", default=[], metavar="NAME=VALUE", help="settings of stack A (default: none)")
     p.add_argument("--b", nargs="*", default=[], metavar="NAME=VALUE", help="settings of stack B")
+    p.add_argument("--a-rev", default="", metavar="REV", help="run stack A's services from this git revision")
+    p.add_argument("--b-rev", default="", metavar="REV", help="run stack B's services from this git revision")
     p.add_argument("--rounds", type=int, default=6, help="windows per stack (default 6)")
     p.add_argument("--concurrency", type=int, default=32, help="concurrent episodes per stack (default 32)")
     p.add_argument("--env-workers", type=int, default=2, help="env workers per stack (default 2)")
@@ -128,7 +145,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.rounds < 1 or args.concurrency < 1 or args.env_workers < 1:
         p.error("--rounds, --concurrency and --env-workers must be at least 1")
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
-    print(report(args, asyncio.run(measure(args))))
+    with tempfile.TemporaryDirectory(prefix="zetta-ab-trees-") as scratch:
+        envs = stack_envs(args, Path(scratch))
+        print(report(args, asyncio.run(measure(args, envs))))
 
 
 if __name__ == "__main__":

@@ -39,7 +39,6 @@ import argparse
 import inspect
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -51,6 +50,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from trees import export  # this folder (bench/) is the script's first import path
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -271,18 +272,6 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
 def child(args: argparse.Namespace) -> None:
     _import_root(Path(args.child))
     print(json.dumps(measure(Path(args.actions), args.max_steps, args.parts)))
-
-
-def export(rev: str, into: Path) -> Path:
-    """The tree of ``rev`` in a directory of its own, with this tree's generated gRPC stubs when it lacks them."""
-    root = into / "tree"
-    root.mkdir(parents=True)
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True, capture_output=True).stdout
-    subprocess.run(["tar", "-x", "-C", str(root)], input=archive, check=True)
-    stubs = Path("clients/python/zetta/v1")
-    if not (root / stubs).exists():
-        shutil.copytree(ROOT / stubs, root / stubs)
-    return root
 
 
 def run_child(root: Path, actions: Path, max_steps: int, parts: bool) -> dict[str, Any]:
