@@ -14,7 +14,6 @@ import queue
 import threading
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from zetta import bench_report
@@ -77,14 +76,18 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
     from services.policy_worker.models.base import load_model
 
     rows: dict[str, bs.Row] = {}
-    recorded: dict[tuple[int, int], np.ndarray] = {}
-    bs.run_naive(rows, load_model(SCRIPTED), [0], bs.DEFAULT_TASK, 8, False, logs.append, recorded)
+    policy = load_model(SCRIPTED)
+    bs.run_naive(rows, policy, [0], bs.DEFAULT_TASK, 8, False, logs.append)
     assert rows["naive"].steps == 8 and rows["naive"].wall_s > 0
-    assert list(recorded) == [bs.episode_key(0)] and recorded[bs.episode_key(0)].shape == (8, 7)
     assert 0 < rows["naive"].episodes[0].build_s < rows["naive"].episodes[0].latency_s
+    keys = bs.limit_keys(2)  # spread: the second key is a seed and 7 init states on
+    assert keys == [bs.episode_key(0), bs.episode_key(bs.LIMIT_KEY_STRIDE)] == [(0, 0), (1, 7)]
+    assert len({init for _, init in bs.limit_keys(50)}) == 50  # up to 50 keys, 50 init states
+    replays = bs.record_replays(policy, keys, bs.DEFAULT_TASK, 8)
+    assert [key for key, _ in replays] == keys and all(a.shape == (8, 7) for _, a in replays)
 
     out: queue.Queue[dict] = queue.Queue()
-    bs.limit_child("obs", bs.DEFAULT_TASK, 8, 0.2, 1, threading.Barrier(1), out, sorted(recorded.items()))
+    bs.limit_child("obs", bs.DEFAULT_TASK, 8, 0.2, 1, threading.Barrier(1), out, replays)
     result = out.get_nowait()
     assert result["episodes"] and all(steps == 8 for steps, _ in result["episodes"])
     bs.limit_child("fast", bs.DEFAULT_TASK, 8, 0.1, 1, threading.Barrier(1), out)  # no recording: random actions

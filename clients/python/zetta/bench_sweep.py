@@ -401,6 +401,29 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
 Replay = tuple[tuple[int, int], np.ndarray]
 
 
+#: Episode indices a step apart in the limit rows' keys: 57 = 50 + 7 moves one seed and 7 init
+#: states on, so up to 50 keys have 50 different init states and their seeds climb as the stacks' do.
+LIMIT_KEY_STRIDE = 57
+
+
+def limit_keys(count: int) -> list[tuple[int, int]]:
+    """The episode keys whose policy actions the limit rows replay, spread over the init states and
+    seeds the stacks' episodes run (the physics of one init state costs up to 15 % more per step
+    than another's, so a few neighbouring keys would not stand for the stacks' mix)."""
+    return [episode_key(k * LIMIT_KEY_STRIDE) for k in range(count)]
+
+
+def record_replays(policy: Any, keys: Sequence[tuple[int, int]], task: str, max_steps: int) -> list[Replay]:
+    """The actions the in-process policy executes on each of ``keys`` (fast path, batch 1)."""
+    out: list[Replay] = []
+    with quiet_fds():
+        for key in keys:
+            _, actions = naive_episode(policy, 0, task, max_steps, True, key=key)
+            if len(actions):
+                out.append((key, actions))
+    return out
+
+
 def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
     """Episodes of fixed random actions (gripper closing and opening every 20 steps) on fresh keys:
     what the limit rows replay when no naive episode recorded the policy's own actions."""
@@ -536,9 +559,8 @@ def run_limit(kind: str, task: str, max_steps: int, seconds: float, procs: int, 
 
 
 def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: str, max_steps: int,
-              fast_step: bool, log: Log, recorded: dict[tuple[int, int], np.ndarray] | None = None) -> None:
-    """Run naive episodes ``indices``, adding them (and their wall time) to the naive row, and the
-    actions each executed to ``recorded`` by episode key."""
+              fast_step: bool, log: Log) -> None:
+    """Run naive episodes ``indices``, adding them (and their wall time) to the naive row."""
     if not indices:
         return
     mode = "naive-fast" if fast_step else "naive"
@@ -549,10 +571,8 @@ def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: s
     done = []
     with quiet_fds():
         for i in indices:
-            episode, actions = naive_episode(policy, i, task, max_steps, fast_step)
+            episode, _ = naive_episode(policy, i, task, max_steps, fast_step)
             done.append(episode)
-            if recorded is not None and len(actions):
-                recorded[episode_key(i)] = actions
     wall = time.perf_counter() - t0
     usage = meter.stop()
     row.episodes += done
@@ -982,15 +1002,15 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
     rows: dict[str, Row] = {}
     half = (args.naive_episodes + 1) // 2
     fast_half = (args.naive_fast_episodes + 1) // 2
-    recorded: dict[tuple[int, int], np.ndarray] = {}
-    run_naive(rows, policy, range(half), args.task, args.max_steps, False, log, recorded)
-    run_naive(rows, policy, range(fast_half), args.task, args.max_steps, True, log, recorded)
-    replays = sorted(recorded.items())
+    run_naive(rows, policy, range(half), args.task, args.max_steps, False, log)
+    run_naive(rows, policy, range(fast_half), args.task, args.max_steps, True, log)
+    t = time.perf_counter()
+    replays = record_replays(policy, limit_keys(args.limit_keys), args.task, args.max_steps)
     res.limit_actions = (
         f"the policy's own actions on {len(replays)} episode key(s) ({', '.join(f'{s}/{i}' for (s, i), _ in replays)} "
-        "as seed/init state), recorded by the naive rows and replayed in turn" if replays
-        else "fixed random actions (no naive episode ran to record the policy's)")
-    log(f"limit rows step {res.limit_actions}")
+        "as seed/init state: spread over the init states and seeds the stacks run), recorded in-process and "
+        "replayed in turn" if replays else "fixed random actions (--limit-keys 0)")
+    log(f"limit rows step {res.limit_actions} (recorded in {time.perf_counter() - t:.1f} s)")
     cores = args.limit_processes or os.cpu_count() or 1
     limits = [run_limit(kind, args.task, args.max_steps, args.limit_seconds, cores, log, replays, res.chunk)
               for kind in ("fast", "obs")]
@@ -1054,6 +1074,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--naive-fast-episodes", type=int, default=4, help="episodes of the naive-fast loop (default 4)")
     p.add_argument("--limit-seconds", type=float, default=12.0, help="seconds of each limit measurement (default 12)")
     p.add_argument("--limit-processes", type=int, default=0, help="processes of the limit rows (default: one per core)")
+    p.add_argument("--limit-keys", type=int, default=10,
+                   help="episode keys whose policy actions the limit rows replay (default 10; 0: random actions)")
     p.add_argument("--paired-rounds", type=int, default=6,
                    help="rounds of the limit and the stack's best point measured one after the other, the limit "
                         "target judged on their medians (default 6; 0: judge on the sweep's rows)")
@@ -1072,6 +1094,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--write-docs", action="store_true", help="write docs/throughput.md and docs/throughput-*.png")
     p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/)")
     args = p.parse_args(argv)
+    if args.limit_keys < 0:
+        p.error("--limit-keys must be >= 0")
     if args.episodes < 1 or args.max_steps < 1 or args.naive_episodes < 0 or args.naive_fast_episodes < 0:
         p.error("--episodes and --max-steps must be >= 1, naive episode counts >= 0")
     if args.env_workers < 1 or args.limit_seconds <= 0 or args.paired_rounds < 0 or args.paired_seconds < 0:
