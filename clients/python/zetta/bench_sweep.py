@@ -18,12 +18,13 @@ rows
   stack-off    the same stack with batching (``ZETTA_MAX_BATCH=1``) and resource sharing
                (``ZETTA_RESOURCE_SHARING=false``: every session compiles its own scene) off
   limit        one process per core, no infrastructure, no policy: reset, then the actions the
-               policy took in the naive episodes through the fast step path (``FastStepper.step``)
+               policy takes on ``--limit-keys`` keys spread over the stacks' init states and seeds
+               (:func:`limit_keys`), through the fast step path (``FastStepper.step``)
   limit-obs    the same with the slot's step as a chunked policy needs it: milestones, success
                and the signals' state every step, the canonical observation the policy reads
                after each action chunk
 
-    zetta bench rollout                          # the full sweep (10-25 minutes on 2 shared cores)
+    zetta bench rollout                          # the full sweep (15-30 minutes on 2 shared cores)
     zetta bench rollout --concurrency 1,4 --baseline-concurrency 2 --episodes 4 --max-steps 16 \
         --naive-episodes 2 --naive-fast-episodes 2 --limit-seconds 2     # a quick look
     zetta bench rollout --write-docs             # also docs/throughput.md + PNG plots
@@ -426,7 +427,7 @@ def record_replays(policy: Any, keys: Sequence[tuple[int, int]], task: str, max_
 
 def random_replays(seed: int, max_steps: int, count: int = 50) -> list[Replay]:
     """Episodes of fixed random actions (gripper closing and opening every 20 steps) on fresh keys:
-    what the limit rows replay when no naive episode recorded the policy's own actions."""
+    what the limit rows replay with ``--limit-keys 0`` instead of the policy's own actions."""
     rng = np.random.default_rng(seed)
     actions = rng.uniform(-0.5, 0.5, size=(max_steps, 7)).astype(np.float32)
     actions[:, 6] = np.where(np.arange(max_steps) % 40 < 20, -1.0, 1.0)
