@@ -66,7 +66,6 @@ class SlotActivity:
 
     def __init__(self, concurrency: int = 0) -> None:
         self.busy = 0
-        self.concurrency = concurrency
         self._turns = threading.Semaphore(concurrency) if concurrency else None
         self._listeners: list[Callable[[], None]] = []
 
