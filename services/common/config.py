@@ -78,6 +78,25 @@ class EnvReader:
             self._errors.append(f"{name}={value!r} is not a host:port address")
         return value
 
+    def cpus(self, name: str) -> frozenset[int] | None:
+        """A CPU list (``0-3,8``) the process may run on; None when unset."""
+        from services.common.cpus import allowed_cpus, format_cpu_list, parse_cpu_list
+
+        raw = self._raw(name, None, False)
+        if raw is None:
+            return None
+        try:
+            cpus = parse_cpu_list(raw)
+        except ValueError as exc:
+            self._errors.append(f"{name}={raw!r} is not a CPU list like 0-3,8: {exc}")
+            return None
+        allowed = allowed_cpus()
+        if allowed is not None and not cpus <= allowed:
+            self._errors.append(f"{name}={raw!r} names CPUs this process may not run on "
+                                f"({format_cpu_list(cpus - allowed)}); allowed: {format_cpu_list(allowed)}")
+            return None
+        return cpus
+
     def fail(self, message: str) -> None:
         """Record a problem that involves several variables."""
         self._errors.append(message)

@@ -42,8 +42,10 @@ class EnvWorkerConfig:
     #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
     infer_hold: InferHold = InferHold()
     #: How many slots run env work at the same time (ZETTA_STEP_CONCURRENCY; default the CPUs this
-    #: process may use, services/common/cpus.py; 0: no bound; SlotActivity).
+    #: process may use, ZETTA_CPUS if set, services/common/cpus.py; 0: no bound; SlotActivity).
     step_concurrency: int = 0
+    #: CPUs the worker pins itself to at start-up (ZETTA_CPUS, a list like 0-3,8); None: not pinned.
+    cpus: frozenset[int] | None = None
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "EnvWorkerConfig":
@@ -58,6 +60,7 @@ class EnvWorkerConfig:
         families = tuple(f.strip() for f in env.str("ZETTA_ENV_FAMILIES", "libero,robosuite").split(",") if f.strip())
         if not families:
             env.fail("ZETTA_ENV_FAMILIES is empty: name at least one family")
+        cpus = env.cpus("ZETTA_CPUS")
         cfg = cls(
             host=host,
             port=port,
@@ -73,7 +76,8 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
-            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", usable_cpus(), minimum=0),
+            step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", usable_cpus(mask=cpus), minimum=0),
+            cpus=cpus,
             infer_hold=InferHold(
                 max_ms=env.float("ZETTA_INFER_HOLD_MS", DEFAULT_INFER_HOLD_MS, minimum=0.0),
                 min_busy=env.int("ZETTA_INFER_HOLD_MIN_BUSY", InferHold.min_busy, minimum=1),

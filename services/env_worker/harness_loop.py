@@ -183,17 +183,20 @@ class SlotHarness:
         assert outcome is not None
         return outcome, np.stack(executed), reward, by_recovery
 
-    def annotate(self, result: types_pb2.StepResult, recovery_actions: int, ended: bool, success: bool) -> None:
+    def end_episode(self, success: bool) -> None:
+        """The episode ended: its report is final from now on, and counted once."""
+        self.finished = report = self.runtime.finish(success)
+        metrics.count_harness_episode(report.policy_actions, report.recovery_actions,
+                                      [(iv.kind, iv.outcome) for iv in report.interventions],
+                                      len(report.disabled_critics))
+
+    def annotate(self, result: types_pb2.StepResult, recovery_actions: int) -> None:
         """Fill a StepResult's harness fields; the episode's report on the result that ended it."""
         result.harness_mode = self.decision.mode
         result.harness_intervention = self.decision.intervention_id
         result.recovery_actions = recovery_actions
-        if ended:
-            self.finished = report = self.runtime.finish(success)
-            report_to_proto(report, result.harness_report)
-            metrics.count_harness_episode(report.policy_actions, report.recovery_actions,
-                                          [(iv.kind, iv.outcome) for iv in report.interventions],
-                                          len(report.disabled_critics))
+        if self.finished is not None:
+            report_to_proto(self.finished, result.harness_report)
 
     def report(self) -> types_pb2.HarnessReport:
         """The episode's report so far (final once the episode ended)."""

@@ -6,6 +6,7 @@ import logging
 import threading
 
 from services.common.config import ConfigError
+from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.env_worker.config import EnvWorkerConfig
@@ -52,6 +53,12 @@ async def main() -> None:
     select_gl_backend()
     log.info("rendering: %s; OpenGL renderer: %s", gl_backend_choice().describe(), _gl_renderer())
     log.info("episode videos: %s", cfg.video_dir or "off (ZETTA_VIDEO_DIR unset)")
+    if cfg.cpus is not None:
+        # After the GL probe: Mesa's queue threads give themselves every CPU when they start, so
+        # they are pinned with the rest; threads started from here on inherit the mask.
+        pin_process(cfg.cpus)
+    log.info("CPUs: %s; %s slot(s) step at once", format_cpu_list(cfg.cpus) + " (pinned, ZETTA_CPUS)"
+             if cfg.cpus is not None else "not pinned", cfg.step_concurrency or "any number of")
     for name in cfg.families:
         try:
             reason = get_family(name).unavailable_reason()

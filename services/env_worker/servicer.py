@@ -13,6 +13,7 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
+from dataclasses import dataclass
 
 import grpc
 import numpy as np
@@ -23,7 +24,7 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.spec_codec import spec_to_wire
 from zetta.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import harness_loop, metrics
-from services.env_worker.families.base import ResetError, ResetSpec, Slot
+from services.env_worker.families.base import ResetError, ResetSpec, Slot, StepOutcome
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
 from services.env_worker.video import VideoError
@@ -35,6 +36,82 @@ log = logging.getLogger(__name__)
 def _timed(method: str):  # type: ignore[no-untyped-def]
     """Env worker hop latency of every call (grpc_errors.timed_unary)."""
     return timed_unary("env_worker", method)
+
+
+@dataclass
+class ChunkRun:
+    """What executing one chunk did: the last step's outcome (its observation is the chunk's
+    last), the actions executed, their summed reward, and how many a recovery chose."""
+
+    outcome: StepOutcome
+    actions: np.ndarray
+    reward: float
+    truncated: bool
+    by_recovery: int
+
+
+def _run_chunk(slot: BoundSlot, chunk: np.ndarray) -> ChunkRun:
+    """Execute a chunk on the slot's thread, stopping at the end of the episode. RunEpisodes reads
+    only the reward and the end of the episode from it, so nothing is encoded here."""
+    episode = slot.episode
+    assert episode is not None
+    env = slot.env
+    family = slot.family_name
+    step_hist = metrics.STEP_SECONDS.labels(family)
+    reward = 0.0
+    executed = 0
+    outcome = None
+    last = len(chunk) - 1
+    by_recovery = 0
+    if slot.harness is not None:  # critics at every step; a recovery's actions replace the policy's
+        outcome, chunk, reward, by_recovery = slot.harness.run_chunk(env, chunk, episode.max_steps, step_hist)
+        executed = len(chunk)
+    else:
+        for i, action in enumerate(chunk):
+            start = time.perf_counter()
+            # Only the observation this call returns is built: the one after the chunk's last action
+            # (the steps before it keep reward, success, milestones and signal state up to date).
+            outcome = env.step(action, observe=i == last)
+            step_hist.observe(time.perf_counter() - start)
+            reward += outcome.reward
+            executed += 1
+            if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
+                break
+    assert outcome is not None
+    if executed - 1 != last:  # the episode ended inside the chunk: build its final observation
+        outcome.observation = env.observe()
+    metrics.STEPS.labels(family).inc(executed)
+    truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)
+    if outcome.terminated or truncated:
+        episode.ended = True
+        episode.success = outcome.success
+        metrics.EPISODES.labels(family, "success" if outcome.success else "failure").inc()
+        if slot.harness is not None:
+            slot.harness.end_episode(outcome.success)
+    slot.last_obs = outcome.observation
+    return ChunkRun(outcome, chunk[:executed], reward, truncated, by_recovery)
+
+
+def _step_result(slot: BoundSlot, run: ChunkRun) -> types_pb2.StepResult:
+    """The wire form of a chunk's run (on the slot's thread: encoding the observation is copy work)."""
+    env, outcome = slot.env, run.outcome
+    result = types_pb2.StepResult(
+        session_id=slot.session_id,
+        reward=run.reward,
+        terminated=outcome.terminated,
+        truncated=run.truncated,
+        success=outcome.success,
+        episode_step=env.episode_step,
+        info=outcome.info,
+        video_path=outcome.video_path,
+        first_missing_milestone=env.first_missing_milestone(),
+        milestones_reached=env.milestones_reached(),
+    )
+    encode(run.actions, result.executed_actions)
+    encode_observation(outcome.observation, result.observation)
+    if slot.harness is not None:
+        slot.harness.annotate(result, run.by_recovery)
+    return result
 
 
 def _milestone_report(env: Slot) -> tuple[list[str], list[str], str]:
@@ -226,58 +303,9 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
 
     @staticmethod
     def _execute(slot: BoundSlot, chunk: np.ndarray) -> types_pb2.StepResult:
-        """Execute a chunk on the slot's thread, stopping at the end of the episode."""
-        episode = slot.episode
-        assert episode is not None
-        env = slot.env
-        family = slot.family_name
-        step_hist = metrics.STEP_SECONDS.labels(family)
-        reward = 0.0
-        executed = 0
-        outcome = None
-        last = len(chunk) - 1
-        by_recovery = 0
-        if slot.harness is not None:  # critics at every step; a recovery's actions replace the policy's
-            outcome, chunk, reward, by_recovery = slot.harness.run_chunk(env, chunk, episode.max_steps, step_hist)
-            executed = len(chunk)
-        else:
-            for i, action in enumerate(chunk):
-                start = time.perf_counter()
-                # Only the observation this call returns is built: the one after the chunk's last action
-                # (the steps before it keep reward, success, milestones and signal state up to date).
-                outcome = env.step(action, observe=i == last)
-                step_hist.observe(time.perf_counter() - start)
-                reward += outcome.reward
-                executed += 1
-                if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
-                    break
-        assert outcome is not None
-        if executed - 1 != last:  # the episode ended inside the chunk: build its final observation
-            outcome.observation = env.observe()
-        metrics.STEPS.labels(family).inc(executed)
-        truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)
-        if outcome.terminated or truncated:
-            episode.ended = True
-            episode.success = outcome.success
-            metrics.EPISODES.labels(family, "success" if outcome.success else "failure").inc()
-        slot.last_obs = outcome.observation
-        result = types_pb2.StepResult(
-            session_id=slot.session_id,
-            reward=reward,
-            terminated=outcome.terminated,
-            truncated=truncated,
-            success=outcome.success,
-            episode_step=env.episode_step,
-            info=outcome.info,
-            video_path=outcome.video_path,
-            first_missing_milestone=env.first_missing_milestone(),
-            milestones_reached=env.milestones_reached(),
-        )
-        encode(chunk[:executed], result.executed_actions)
-        encode_observation(outcome.observation, result.observation)
-        if slot.harness is not None:
-            slot.harness.annotate(result, by_recovery, episode.ended, episode.success)
-        return result
+        """Execute a chunk on the slot's thread, stopping at the end of the episode; the StepResult
+        a StepSlots or PolicyStepSlots caller reads."""
+        return _step_result(slot, _run_chunk(slot, chunk))
 
     # ---- policy ------------------------------------------------------------------------------
 
@@ -364,22 +392,22 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         first_step = slot.env.episode_step
         reward = 0.0
         calls = 0
-        last: types_pb2.StepResult | None = None
+        last: ChunkRun | None = None
         async with slot.busy:
             while slot.env.episode_step - first_step < budget and not episode.ended:
                 chunk, asked = await self._next_chunk(slot, policy)
                 calls += asked
                 remaining = budget - (slot.env.episode_step - first_step)
                 n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)
-                last = await slot.run(self._execute, slot, chunk[: min(n, remaining)])
+                last = await slot.run(_run_chunk, slot, chunk[: min(n, remaining)])
                 reward += last.reward
             # The summary's video is complete: one that the budget cut short is finished here.
             video_path = await slot.run(slot.env.finish_video)
             names, reached, missing = await slot.run(_milestone_report, slot.env)
             harness = slot.harness.report() if slot.harness is not None else None
-        if last is not None and last.success:
+        if last is not None and last.outcome.success:
             reason = types_pb2.STOP_REASON_SUCCESS
-        elif last is not None and last.terminated:
+        elif last is not None and last.outcome.terminated:
             reason = types_pb2.STOP_REASON_TERMINATED
         else:
             reason = types_pb2.STOP_REASON_MAX_STEPS
@@ -388,7 +416,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             episode_id=episode.episode_id,
             steps=slot.env.episode_step - first_step,
             reward=reward,
-            success=bool(last is not None and last.success),
+            success=bool(last is not None and last.outcome.success),
             stop_reason=reason,
             wall_ms=(time.perf_counter() - start) * 1000.0,
             policy_calls=calls,

@@ -23,6 +23,8 @@ class PolicyWorkerConfig:
     grace_seconds: float
     #: ZETTA_VLA_SPLIT: serve the Zetta VLA's two stages in two processes (docs/policies.md).
     vla_split: bool = False
+    #: CPUs the worker pins itself to at start-up (ZETTA_CPUS, a list like 0-3,8); None: not pinned.
+    cpus: frozenset[int] | None = None
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "PolicyWorkerConfig":
@@ -45,6 +47,7 @@ class PolicyWorkerConfig:
         timeout = env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1)
         grace = env.float("ZETTA_GRACE_SECONDS", 5.0, minimum=0.0)
         vla_split = env.bool("ZETTA_VLA_SPLIT", False)
+        cpus = env.cpus("ZETTA_CPUS")
         if max_queue < max_batch:
             env.fail(f"ZETTA_MAX_QUEUE={max_queue} must be >= ZETTA_MAX_BATCH={max_batch}")
         env.finish("policy worker")
@@ -60,4 +63,5 @@ class PolicyWorkerConfig:
             default_timeout_ms=timeout,
             grace_seconds=grace,
             vla_split=vla_split,
+            cpus=cpus,
         )

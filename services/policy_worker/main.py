@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 from services.common.config import ConfigError
+from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.policy_worker.config import PolicyWorkerConfig
@@ -19,6 +20,9 @@ async def main() -> None:
     """Load the models, serve them through one scheduler, drain the queue on SIGTERM."""
     setup_logging("policy_worker")
     cfg = PolicyWorkerConfig.from_env()
+    if cfg.cpus is not None:  # before the models load, so every thread they start stays there too
+        pin_process(cfg.cpus)
+        logging.getLogger("policy_worker").info("pinned to CPUs %s (ZETTA_CPUS)", format_cpu_list(cfg.cpus))
     try:
         models = {name: load_model(name) for name in cfg.models}
     except ValueError as exc:  # a model's own settings (ZETTA_VLA_*) are wrong for this node
