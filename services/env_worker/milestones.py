@@ -353,17 +353,16 @@ class MilestoneTracker:
         holds = self.stage_holds
         eef = probe.eef()
         cache: dict[tuple[str, str], object] = {}
+        fetch = {"bbox": probe.bbox, "contact": probe.gripper_contact, "handle_bbox": probe.handle_bbox,
+                 "handle_contact": probe.handle_contact}
 
         def get(what: str, name: str):  # type: ignore[no-untyped-def]
             key = (what, name)
-            if key not in cache:
-                cache[key] = {
-                    "bbox": probe.bbox,
-                    "contact": probe.gripper_contact,
-                    "handle_bbox": probe.handle_bbox,
-                    "handle_contact": probe.handle_contact,
-                }[what](name)
-            return cache[key]
+            try:
+                return cache[key]
+            except KeyError:
+                found = cache[key] = fetch[what](name)
+                return found
 
         for i, m in enumerate(self.plan.milestones):
             if not which[i]:

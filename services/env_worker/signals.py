@@ -72,6 +72,11 @@ class Contacts:
     force: np.ndarray  # [n, 3] world frame, acting on geom2 (equal and opposite on geom1); [0, 3] if not read
     normal: np.ndarray  # [n] normal force magnitude (>= 0); [0] if not read
 
+    @functools.cached_property
+    def pairs(self) -> list[tuple[int, int]]:
+        """The geom pairs as Python ints: several checks per step loop over them."""
+        return list(zip(self.geom1.tolist(), self.geom2.tolist()))
+
     @classmethod
     def empty(cls) -> Contacts:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
@@ -93,25 +98,35 @@ def read_contacts(model: object, data: object, involving: frozenset[int] | None 
     if n == 0:
         return Contacts.empty()
     contact = data.contact  # type: ignore[attr-defined]
-    geom1, geom2 = contact.geom1[:n].tolist(), contact.geom2[:n].tolist()
+    geom1, geom2 = contact.geom1[:n], contact.geom2[:n]
     if involving is None:
-        keep = list(range(n))
+        keep = np.arange(n)
     else:
-        keep = [i for i, (g1, g2) in enumerate(zip(geom1, geom2)) if g1 in involving or g2 in involving]
-        if not keep:
+        mask = _geom_mask(involving, int(model.ngeom))  # type: ignore[attr-defined]
+        keep = np.flatnonzero(mask[geom1] | mask[geom2])
+        if not len(keep):
             return Contacts.empty()
-    pairs = (np.array([geom1[i] for i in keep], dtype=np.int64), np.array([geom2[i] for i in keep], dtype=np.int64))
+    pairs = (geom1[keep].astype(np.int64), geom2[keep].astype(np.int64))
     if not forces:
         return Contacts(*pairs, np.zeros((0, 3)), np.zeros(0))
     m = len(keep)
     frames = np.asarray(contact.frame[keep]).reshape(m, 3, 3)
     local = np.zeros((m, 6))
     buf = np.zeros(6)
-    for row, i in enumerate(keep):
+    for row, i in enumerate(keep.tolist()):
         mujoco.mj_contactForce(model, data, i, buf)
         local[row] = buf
     force = np.einsum("nij,ni->nj", frames, local[:, :3])  # frame rows: normal, tangent1, tangent2
     return Contacts(*pairs, force, np.abs(local[:, 0]))
+
+
+@functools.lru_cache(maxsize=64)
+def _geom_mask(geoms: frozenset[int], ngeom: int) -> np.ndarray:
+    """Which of a model's geoms are in ``geoms``: one lookup per contact in place of set tests. One
+    entry more than the geoms, never set, so that a contact without a geom (-1: a flex) is in none."""
+    mask = np.zeros(ngeom + 1, dtype=bool)
+    mask[[g for g in geoms if 0 <= g < ngeom]] = True
+    return mask
 
 
 def _ids(geoms: object) -> frozenset[int]:
@@ -128,7 +143,7 @@ def touches(contacts: Contacts, a: object, b: object) -> bool:
     sa, sb = _ids(a), _ids(b)
     if not sa or not sb:
         return False
-    for g1, g2 in zip(contacts.geom1.tolist(), contacts.geom2.tolist()):
+    for g1, g2 in contacts.pairs:
         if (g1 in sa and g2 in sb) or (g1 in sb and g2 in sa):
             return True
     return False
@@ -138,7 +153,7 @@ def force_on(contacts: Contacts, by: object, on: object) -> np.ndarray:
     """Net world-frame force (N) that geoms ``by`` exert on geoms ``on``."""
     sby, son = _ids(by), _ids(on)
     total = np.zeros(3)
-    for i, (g1, g2) in enumerate(zip(contacts.geom1.tolist(), contacts.geom2.tolist())):
+    for i, (g1, g2) in enumerate(contacts.pairs):
         if g1 in sby and g2 in son:  # the force acts on geom2 from geom1
             total += contacts.force[i]
         elif g1 in son and g2 in sby:
@@ -150,7 +165,7 @@ def collision_intensity(contacts: Contacts, robot: object, exclude: object) -> f
     """Sum of normal forces (N) of contacts between ``robot`` geoms and geoms outside ``robot`` and ``exclude``."""
     srobot, sexclude = _ids(robot), _ids(exclude)
     total = 0.0
-    for i, (g1, g2) in enumerate(zip(contacts.geom1.tolist(), contacts.geom2.tolist())):
+    for i, (g1, g2) in enumerate(contacts.pairs):
         in1, in2 = g1 in srobot, g2 in srobot
         if (in1 and not in2 and g2 not in sexclude) or (in2 and not in1 and g1 not in sexclude):
             total += float(contacts.normal[i])

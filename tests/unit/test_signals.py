@@ -73,6 +73,7 @@ def test_contacts_involving_some_geoms_are_those_rows_of_all_contacts() -> None:
     for field in ("geom1", "geom2", "force", "normal"):  # the same values, bit for bit, in MuJoCo's order
         assert np.array_equal(getattr(only, field), getattr(everything, field)[rows])
     assert len(sig.read_contacts(model, data, frozenset({_gid(model, "wall")})).geom1) == 0
+    assert only.pairs == list(zip(only.geom1.tolist(), only.geom2.tolist()))
     geoms = _geoms(model)
     assert geoms.all_geoms == geoms.left | geoms.right | geoms.gripper | geoms.robot
 
@@ -176,6 +177,14 @@ def test_tracked_steps_keep_the_state_of_computed_ones() -> None:
     for name, value in expected.items():
         assert np.array_equal(got[name], value), name
     assert got["phi_object_gripper_drift"][0] > 0.0 and got["phi_eef_motion"][3:].any()
+
+
+def test_a_contact_without_a_geom_involves_no_geom_set() -> None:
+    """MuJoCo marks a flex's side of a contact with geom -1; the lookup must not wrap to the last geom."""
+    model, _ = _pinch_state(0.04)
+    last = model.ngeom - 1
+    mask = sig._geom_mask(frozenset({last}), model.ngeom)
+    assert mask[last] and not mask[-1] and not mask[np.array([-1])].any()
 
 
 def test_contacts_without_forces_name_the_same_pairs() -> None:
