@@ -13,7 +13,8 @@ rows
                on a batch of one; half of its episodes run first, half last, so drifting load
                weighs on both ends of the run
   naive-fast   the same loop on our fast step path (a reference row: what the step path alone gives)
-  stack        ``LocalStack`` (Redis, gateway, critic service, env workers, one policy worker) on loopback;
+  stack        ``LocalStack`` (Redis, gateway, critic service, env workers each pinned to its own
+               cores, one policy worker) on loopback;
                ``c`` lanes each run episodes back to back on one session with ``run_episode``
   stack-off    the same stack with batching (``ZETTA_MAX_BATCH=1``) and resource sharing
                (``ZETTA_RESOURCE_SHARING=false``: every session compiles its own scene) off
