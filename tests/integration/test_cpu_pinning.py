@@ -35,3 +35,12 @@ def test_env_workers_run_on_disjoint_cpu_blocks(stack: LocalStack) -> None:
     assert not blocks[0] & blocks[1]
     assert _thread_cpus(stack.services["policy-0"].proc.pid)[stack.services["policy-0"].proc.pid] == \
         frozenset(os.sched_getaffinity(0))  # the policy worker is left to the scheduler
+
+
+def test_policy_worker_pins_itself_to_zetta_cpus(tmp_path: Path) -> None:
+    """ZETTA_CPUS on a policy worker: every thread of it (the model's, gRPC's) runs on that list."""
+    cpu = max(os.sched_getaffinity(0))
+    with LocalStack(env_workers=0, policy_workers=1, critic=False, workdir=tmp_path,
+                    extra_env={"ZETTA_CPUS": str(cpu)}) as stack:
+        threads = _thread_cpus(stack.services["policy-0"].proc.pid)
+    assert len(threads) > 1 and set(threads.values()) == {frozenset({cpu})}, threads
