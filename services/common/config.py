@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
+from services.common.cpus import allowed_cpus, format_cpu_list, parse_cpu_list
+
 
 class ConfigError(ValueError):
     """One or more environment variables are missing or malformed."""
@@ -80,8 +82,6 @@ class EnvReader:
 
     def cpus(self, name: str) -> frozenset[int] | None:
         """A CPU list (``0-3,8``) the process may run on; None when unset."""
-        from services.common.cpus import allowed_cpus, format_cpu_list, parse_cpu_list
-
         raw = self._raw(name, None, False)
         if raw is None:
             return None

@@ -26,13 +26,9 @@ CGROUP_ROOT = Path("/sys/fs/cgroup")
 def usable_cpus(cgroup_root: Path = CGROUP_ROOT, mask: Set[int] | None = None) -> int:
     """CPUs of the affinity mask (``mask``, or this process's), at most the cgroup quota rounded
     up; at least 1."""
-    if mask is not None:
-        count = len(mask)
-    else:
-        try:
-            count = len(os.sched_getaffinity(0))
-        except (AttributeError, OSError):  # no affinity call (macOS)
-            count = os.cpu_count() or 1
+    if mask is None:
+        mask = allowed_cpus()
+    count = len(mask) if mask is not None else os.cpu_count() or 1
     quota = cgroup_cpu_quota(cgroup_root)
     if quota is not None:
         count = min(count, math.ceil(quota))
@@ -58,7 +54,7 @@ def cgroup_cpu_quota(root: Path = CGROUP_ROOT) -> float | None:
 
 
 def allowed_cpus() -> frozenset[int] | None:
-    """The CPUs this process may run on (its affinity mask); None where the OS has no such call."""
+    """The CPUs this process may run on (its affinity mask); None where the OS has no such call (macOS)."""
     try:
         return frozenset(os.sched_getaffinity(0))
     except (AttributeError, OSError):

@@ -247,7 +247,8 @@ class LocalStack:
         allowed = allowed_cpus()
         if not self.pin_env_workers or allowed is None or usable_cpus() < len(allowed):
             return ""
-        block = split_cpus(sorted(allowed), max(1, self.env_workers))[i % max(1, self.env_workers)]
+        workers = max(1, self.env_workers)
+        block = split_cpus(sorted(allowed), workers)[i % workers]
         return "" if len(block) == len(allowed) else format_cpu_list(set(block))
 
     def start_env_worker(self, i: int) -> Service:
