@@ -17,7 +17,7 @@ chunk    ``EnvWorkerServicer._execute`` on chunks of 8 actions: the lazy slot st
 random   ``FastStepper.step`` on fixed random actions (what the `limit` rows stepped before they
          replayed the policy's), as many per episode as the policy took
 
-The actions are the shipped policy's own (``zetta-vla-state`` run in-process on each episode key
+The actions are the shipped policy's own (``privileged-state-baseline`` run in-process on each episode key
 once, then replayed), because a policy that grasps makes contact-rich, costlier physics than random
 actions do. ``--against REV`` also measures another revision of the code (exported with
 ``git archive`` to a temporary directory; the working tree is not touched) in the same run: child
@@ -82,11 +82,12 @@ def record(out: Path, episodes: int, max_steps: int) -> None:
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
     from services.env_worker.families.base import ResetSpec
     from services.policy_worker.models.base import load_model
-    from zetta.bench_sweep import DEFAULT_MODEL, quiet_fds
+    from services.common.policies import PRIVILEGED_BASELINE
+    from zetta.bench_sweep import quiet_fds
 
     family, slot = _slot(max_steps)
-    with quiet_fds():
-        policy = load_model(DEFAULT_MODEL)
+    with quiet_fds():  # a state policy: these slots render no camera, and its actions are deterministic
+        policy = load_model(PRIVILEGED_BASELINE)
     from zetta.bench_sweep import random_replays
 
     actions = {"random": random_replays(1, max_steps, 1)[0][1]}

@@ -28,6 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
+from services.common.policies import DEFAULT_POLICY
 from services.critic.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
 from zetta.local_stack import LocalStack  # noqa: E402
@@ -197,7 +198,7 @@ def write_doc(path: Path, rows: list[dict], a: argparse.Namespace, seconds: floa
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--harness", default=str(ROOT / "examples" / "harnesses" / "libero-goal-pick-place"))
-    p.add_argument("--model", default="zetta-vla-state")
+    p.add_argument("--model", default=DEFAULT_POLICY)
     p.add_argument("--suites", default="libero_goal_swap,libero_goal_task")
     p.add_argument("--tasks", default="6,9")
     p.add_argument("--seeds", default="130-139", help="held-out seeds: 'a-b' or a comma list; init state = seed %% 50")

@@ -38,6 +38,9 @@ def new_stack(**overrides: Any) -> LocalStack:
         "heartbeat_interval_ms": HEARTBEAT_INTERVAL_MS,
         "heartbeat_timeout_ms": HEARTBEAT_TIMEOUT_MS,
         "extra_env": {"ZETTA_LOG_LEVEL": "INFO"},
+        # Infrastructure tests drive Lift and LIBERO sessions without cameras: the scripted policy
+        # reads state (the shipped default, the image VLA, is tested where it is the subject).
+        "models": ("scripted-pick-place",),
     }
     settings.update(overrides)
     return LocalStack(**settings)

@@ -8,6 +8,7 @@ worker and clients in other languages agree on names, dtypes and shapes without 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -60,3 +61,14 @@ class TensorSpec:
     def zeros(self) -> np.ndarray:
         """An all-zero array of this spec (free dimensions get length 1)."""
         return np.zeros([d if d >= 0 else 1 for d in self.shape], dtype=self.dtype)
+
+
+def render_config(specs: list[TensorSpec]) -> dict[str, Any]:
+    """The env-config keys that make a slot render exactly the camera images these input specs
+    declare (``<camera>_image``, uint8 [S, S, 3]) with reflections off, or {} for a policy that
+    reads no image: clients create sessions with it so a policy is shown what it was trained on."""
+    cameras = [s for s in specs if s.name.endswith("_image")]
+    if not cameras:
+        return {}
+    return {"cameras": [s.name.removesuffix("_image") for s in cameras], "camera_size": int(cameras[0].shape[0]),
+            "reflections": False}

@@ -18,6 +18,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from services.common.policies import DEFAULT_POLICY
 from services.evolver.cluster import ClusterParams
 from services.evolver.eod import EODParams
 from services.evolver.evolve import EvolveConfig, Evolution
@@ -39,7 +40,7 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", type=Path, default=None, help="report directory (default <store>/report)")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
-    p.add_argument("--model", default="zetta-vla-state", help="the frozen policy (default zetta-vla-state)")
+    p.add_argument("--model", default=DEFAULT_POLICY, help=f"the frozen policy (default {DEFAULT_POLICY})")
     p.add_argument("--execute-steps", type=int, default=2, help="actions of each chunk executed per policy call")
     p.add_argument("--max-steps", type=int, default=0, help="episode budget (default: the suite's)")
     p.add_argument("--concurrency", type=int, default=2, help="episodes in flight")

@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from services.common.policies import DEFAULT_POLICY
 from services.evolver.cmd_eval import _publish_dir
 from services.evolver.cmd_evolve import llm_from_env
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
@@ -134,7 +135,7 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
-    p.add_argument("--model", default="zetta-vla-state")
+    p.add_argument("--model", default=DEFAULT_POLICY)
     p.add_argument("--execute-steps", type=int, default=2)
     p.add_argument("--max-steps", type=int, default=0)
     p.add_argument("--concurrency", type=int, default=2)

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from services.common.policies import policy_env_config
 from services.evolver.cluster import Cluster, ClusterParams, cluster_failures
 from services.evolver.consolidate import consolidate
 from services.evolver.diagnose import REENTERED, Case, RepairSpec, repair_spec
@@ -457,7 +458,7 @@ def step_rank(reached: int, interventions: Sequence[dict[str, Any]], recovery_st
 def env_config(suite: str, run: RunConfig) -> dict[str, Any]:
     """Session config: the suite, and the step budget when one is set, so the env worker itself ends
     episodes there (and a harness reports on them)."""
-    return {"suite": suite, **({"max_steps": run.max_steps} if run.max_steps else {})}
+    return {"suite": suite, **policy_env_config(run.model), **({"max_steps": run.max_steps} if run.max_steps else {})}
 
 
 def _safe(name: str) -> str:

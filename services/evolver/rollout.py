@@ -19,6 +19,7 @@ from typing import Any
 
 import grpc
 
+from services.common.policies import DEFAULT_POLICY
 from services.evolver.store import EpisodeKey, Outcome, Rollout, RolloutStore
 from services.evolver.trace import TraceRecorder
 from zetta.client import Gateway, SessionGroup, ZettaError
@@ -58,7 +59,7 @@ class RunConfig:
     """How episodes are run: the frozen policy, its chunk use, the budget and the recording."""
 
     gateway: str
-    model: str = "zetta-vla-state"
+    model: str = DEFAULT_POLICY
     execute_steps: int = 2
     max_steps: int = 0
     record_video: bool = False

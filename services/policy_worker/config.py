@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from services.common.policies import DEFAULT_POLICY
 from services.common.config import EnvReader
 from services.policy_worker.models.base import FACTORIES
 from services.policy_worker.scheduler import SchedulerConfig
@@ -23,6 +24,9 @@ class PolicyWorkerConfig:
     grace_seconds: float
     #: ZETTA_VLA_SPLIT: serve the Zetta VLA's two stages in two processes (docs/policies.md).
     vla_split: bool = False
+    #: ZETTA_INPUT_CHECK_FAMILY: the env family whose observations every served model's inputs
+    #: are checked against at start-up ("" skips the check).
+    input_check_family: str = "libero"
     #: CPUs the worker pins itself to at start-up (ZETTA_CPUS, a list like 0-3,8); None: not pinned.
     cpus: frozenset[int] | None = None
 
@@ -30,7 +34,7 @@ class PolicyWorkerConfig:
     def from_env(cls, environ: Mapping[str, str] | None = None) -> "PolicyWorkerConfig":
         """Read and validate; raises ConfigError naming every bad variable."""
         env = EnvReader(environ)
-        models = tuple(m.strip() for m in env.str("ZETTA_MODELS", "scripted-pick-place").split(",") if m.strip())
+        models = tuple(m.strip() for m in env.str("ZETTA_MODELS", DEFAULT_POLICY).split(",") if m.strip())
         for m in models:
             if m not in FACTORIES:
                 env.fail(f"ZETTA_MODELS: unknown model {m!r}; known: {', '.join(sorted(FACTORIES))}")
@@ -47,6 +51,7 @@ class PolicyWorkerConfig:
         timeout = env.int("ZETTA_POLICY_TIMEOUT_MS", 10_000, minimum=1)
         grace = env.float("ZETTA_GRACE_SECONDS", 5.0, minimum=0.0)
         vla_split = env.bool("ZETTA_VLA_SPLIT", False)
+        input_check_family = env.str("ZETTA_INPUT_CHECK_FAMILY", "libero").strip()
         cpus = env.cpus("ZETTA_CPUS")
         if max_queue < max_batch:
             env.fail(f"ZETTA_MAX_QUEUE={max_queue} must be >= ZETTA_MAX_BATCH={max_batch}")
@@ -63,5 +68,6 @@ class PolicyWorkerConfig:
             default_timeout_ms=timeout,
             grace_seconds=grace,
             vla_split=vla_split,
+            input_check_family=input_check_family,
             cpus=cpus,
         )

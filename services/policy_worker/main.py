@@ -9,6 +9,7 @@ from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.policy_worker.config import PolicyWorkerConfig
+from services.policy_worker.input_check import check_models
 from services.policy_worker.metrics import PrometheusObserver
 from services.policy_worker.models.base import load_model
 from services.policy_worker.scheduler import BatchScheduler
@@ -29,6 +30,8 @@ async def main() -> None:
         raise ConfigError(f"policy_worker: {exc}") from None
     for name, model in models.items():
         model.name = name
+    if cfg.input_check_family:
+        check_models(models, cfg.input_check_family)
     observer = PrometheusObserver()
     scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler, observer)
     if cfg.vla_split:

@@ -419,7 +419,7 @@ def _run_service(module: str, env: dict[str, str]) -> subprocess.CompletedProces
                      "ZETTA_ENV_FAMILIES", marks=pytest.mark.skipif(not robocasa_unavailable_reason(),
                                                                     reason="RoboCasa is installed here")),
         ("services.policy_worker.main", {"ZETTA_MODELS": "nope", "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_MODELS"),
-        ("services.policy_worker.main", {"ZETTA_MODELS": "zetta-vla-state", "ZETTA_VLA_DEVICE": "tpu",
+        ("services.policy_worker.main", {"ZETTA_MODELS": "privileged-state-baseline", "ZETTA_VLA_DEVICE": "tpu",
                                          "ZETTA_POLICY_WORKER_PORT": "0"}, "ZETTA_VLA_DEVICE"),
     ],
     ids=["gateway-no-redis-url", "gateway-timeout-below-interval", "gateway-redis-unreachable",

@@ -22,6 +22,11 @@ from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy, 
 pytestmark = pytest.mark.skipif(not (STATE_CHECKPOINT / "model.pt").exists(), reason="no shipped checkpoint")
 
 
+def state_policy(**kw) -> ZettaVLAPolicy:
+    """The two-stage mechanics are the same for both variants; the state checkpoint needs no frames."""
+    return ZettaVLAPolicy(STATE_CHECKPOINT, name="privileged-state-baseline", **kw)
+
+
 def _batch(b: int, seed: int = 0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     return {n: (rng.standard_normal((b, w)) * 0.1).astype(np.float32) for n, w in STATE_INPUTS}
@@ -29,7 +34,7 @@ def _batch(b: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def policy() -> ZettaVLAPolicy:
-    return ZettaVLAPolicy()  # the default Gaussian start, seeded per request: rows compare exactly
+    return state_policy()  # the default Gaussian start, seeded per request: rows compare exactly
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +43,7 @@ def instruction(policy) -> str:
 
 
 def test_registered_and_checkpoint_is_small() -> None:
-    assert "zetta-vla-state" in FACTORIES
+    assert "privileged-state-baseline" in FACTORIES
     size = sum(f.stat().st_size for f in STATE_CHECKPOINT.iterdir())
     assert size <= 25e6
     _, doc, cache = load_checkpoint(STATE_CHECKPOINT)
@@ -76,13 +81,13 @@ def test_instruction_changes_the_action(policy) -> None:
 def test_w8a8_plugin_quantizes_only_prefix_mlp(instruction) -> None:
     from torch.ao.nn.quantized.dynamic import Linear as DynLinear
 
-    q = ZettaVLAPolicy(quantize="w8a8", noise="zero")
+    q = state_policy(quantize="w8a8", noise="zero")
     assert q.quantized == ["encoder.prefix_mlp"]
     assert sum(isinstance(m, DynLinear) for m in q.model.encoder.prefix_mlp.modules()) == 3
     assert not any(type(m) is torch.nn.Linear for m in q.model.encoder.prefix_mlp.modules())
     assert not any(isinstance(m, DynLinear) for m in q.model.expert.modules())
     assert not any(isinstance(m, DynLinear) for m in q.model.encoder.obs.modules())
-    f = ZettaVLAPolicy(noise="zero")
+    f = state_policy(noise="zero")
     batch = _batch(8)
     diff = np.abs(q.infer(batch, [instruction] * 8)[..., :6] - f.infer(batch, [instruction] * 8)[..., :6])
     assert diff.mean() < 0.1
@@ -98,7 +103,7 @@ def test_split_matches_monolithic_and_honours_deadlines(instruction, monkeypatch
 
     async def go():
         cfg = SchedulerConfig(max_batch=4, max_queue_delay=0.002)
-        mono, split = MonolithicVLA(config=cfg), SplitVLA(vlm=cfg, ae=cfg, slots=64)
+        mono, split = MonolithicVLA(str(STATE_CHECKPOINT), config=cfg), SplitVLA(str(STATE_CHECKPOINT), vlm=cfg, ae=cfg, slots=64)
         try:
             def mk(i, d=5.0):
                 return InferItem(f"t{i}", "m", items[i % 6], instruction, deadline=time.monotonic() + d)
@@ -136,18 +141,18 @@ def test_split_worker_holds_one_copy_of_each_stage(instruction, monkeypatch) -> 
     from services.policy_worker.vla.split import SplitRouter, wrap_for_split
 
     monkeypatch.delenv("ZETTA_VLA_NOISE", raising=False)
-    model = ZettaVLAPolicy()
+    model = state_policy()
     expected = model.infer(_batch(1), [instruction])[0]
     cfg = SchedulerConfig(max_batch=4, max_queue_delay=0.002)
-    models = {"zetta-vla-state": model}
+    models = {"privileged-state-baseline": model}
 
     async def go():
         router = wrap_for_split(BatchScheduler(lambda m, x, i: models[m].infer(x, i), cfg), models, cfg)
         assert isinstance(router, SplitRouter)
         try:
-            assert router._split["zetta-vla-state"].policy is model
+            assert router._split["privileged-state-baseline"].policy is model
             assert hasattr(model.model, "encoder") and not hasattr(model.model, "expert")
-            item = InferItem("t", "zetta-vla-state", {k: v[0] for k, v in _batch(1).items()}, instruction,
+            item = InferItem("t", "privileged-state-baseline", {k: v[0] for k, v in _batch(1).items()}, instruction,
                              deadline=time.monotonic() + 10)
             return await router.submit(item)
         finally:
@@ -239,26 +244,26 @@ def test_gaussian_start_is_seeded_per_request(instruction) -> None:
     """The same request draws the same x0 whatever else shares its batch and whichever policy
     instance serves it; another observation or another policy seed draws another one."""
     batch = _batch(3)
-    a, b = ZettaVLAPolicy(seed=5), ZettaVLAPolicy(seed=5)
+    a, b = state_policy(seed=5), state_policy(seed=5)
     assert a.noise == "gaussian"
     first = a.infer(batch, [instruction] * 3)
     assert np.array_equal(first, b.infer(batch, [instruction] * 3))
     assert np.array_equal(first, a.infer(batch, [instruction] * 3)), "a repeated request replays"
     seeds = a.request_seeds(a.state_inputs(batch), [instruction] * 3)
     assert len(set(seeds.tolist())) == 3, "each observation its own draw"
-    other = ZettaVLAPolicy(seed=6).request_seeds(a.state_inputs(batch), [instruction] * 3)
+    other = state_policy(seed=6).request_seeds(a.state_inputs(batch), [instruction] * 3)
     assert not set(seeds.tolist()) & set(other.tolist())
-    zero = ZettaVLAPolicy(noise="zero").infer(batch, [instruction] * 3)
+    zero = state_policy(noise="zero").infer(batch, [instruction] * 3)
     assert not np.array_equal(first[..., :6], zero[..., :6])
     with pytest.raises(ValueError):
-        ZettaVLAPolicy(noise="uniform")
+        state_policy(noise="uniform")
 
 
 def test_batch_invariant_mode_makes_rows_independent_of_their_batch(instruction, monkeypatch) -> None:
     """Batched matmuls differ in the last bits with the batch size; in batch-invariant mode a
     request's actions are bit for bit the same alone, in a batch of 3 or of 8."""
     monkeypatch.setenv("ZETTA_VLA_BATCH_INVARIANT", "1")
-    p = ZettaVLAPolicy()
+    p = state_policy()
     batch = _batch(8)
     together = p.infer(batch, [instruction] * 8)
     alone = np.concatenate([p.infer({k: v[i:i + 1] for k, v in batch.items()}, [instruction]) for i in range(8)])
@@ -270,7 +275,7 @@ def test_batch_invariant_mode_makes_rows_independent_of_their_batch(instruction,
 def test_traced_action_expert_serves_the_eager_numbers_at_every_batch_size(instruction, noise) -> None:
     """The served stage 2 is a TorchScript trace made at batch 1; it gives the eager module's
     actions bit for bit at other batch sizes too (the flow time is built from the rows)."""
-    traced, eager = ZettaVLAPolicy(noise=noise), ZettaVLAPolicy(noise=noise, trace=False)
+    traced, eager = state_policy(noise=noise), state_policy(noise=noise, trace=False)
     assert isinstance(traced._expert, torch.jit.ScriptModule) and eager._expert is eager.model.expert
     for b in (1, 3, 8):
         batch = _batch(b, seed=b)
@@ -278,9 +283,9 @@ def test_traced_action_expert_serves_the_eager_numbers_at_every_batch_size(instr
 
 
 def test_traced_action_expert_with_a_quantized_expert(instruction) -> None:
-    q = ZettaVLAPolicy(quantize="expert.blocks")
+    q = state_policy(quantize="expert.blocks")
     assert q.quantized == ["expert.blocks"]
-    ref = ZettaVLAPolicy(quantize="expert.blocks", trace=False)
+    ref = state_policy(quantize="expert.blocks", trace=False)
     batch = _batch(4)
     assert np.array_equal(q.infer(batch, [instruction] * 4), ref.infer(batch, [instruction] * 4))
 
@@ -336,7 +341,7 @@ def test_split_over_cuda_ipc_and_image_variant(tmp_path) -> None:
     loss.backward()
     from services.policy_worker.vla.split import SplitVLA
 
-    split = SplitVLA(device="cuda", slots=64)
+    split = SplitVLA(str(STATE_CHECKPOINT), device="cuda", slots=64)
     try:
         assert split.prefixes.is_cuda
         b = _batch(1)

@@ -5,7 +5,7 @@ same load (the machine may be shared; the 1-minute load average is recorded with
 All rows run the same episodes: LIBERO-Goal ``--task`` (state only), episode i from init state
 i % 50 and seed i // 50 (see :func:`episode_key`), a fixed step budget ``--max-steps`` (episode
 length depends on success, so steps/s is reported next to episodes/min), the same policy
-(``--model``, default the shipped ``zetta-vla-state``), whose action chunks are executed whole.
+(``--model``, default the shipped ``zetta-vla-image``), whose action chunks are executed whole.
 
 rows
   naive        one process, episodes one after another, a LIBERO env built from scratch for every
@@ -56,9 +56,11 @@ from typing import Any
 
 import numpy as np
 
+from services.common.policies import DEFAULT_POLICY
+
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
-DEFAULT_MODEL = "zetta-vla-state"
+DEFAULT_MODEL = DEFAULT_POLICY
 #: The issue's sweep, plus 4: on 2 cores the stack saturates them between 2 and 8 lanes, so its
 #: best point is often 4. Without sharing every session holds its own scene (about 0.6 GB for
 #: LIBERO-Goal), so the no-sharing baseline stops at 8 on a shared 24 GB machine (16 was killed for

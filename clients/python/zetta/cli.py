@@ -7,7 +7,7 @@
   zetta workers|sessions --gateway ADDR
   zetta train [--variant state|image] [--data DEMOS.npz ...]
                                oracle demos (clean + DART) on LIBERO-Goal, train the Zetta VLA, DAgger
-  zetta eval-policy [--model zetta-vla-state] [--suites ...] [--seeds N]
+  zetta eval-policy [--model zetta-vla-image] [--suites ...] [--seeds N]
                                closed-loop success per task with Wilson 95% intervals
   zetta bench rollout [--concurrency 1,8,16,32,64] [--episodes N] [--max-steps N] [--write-docs]
                                throughput sweep vs a naive loop, the stack without batching and

@@ -24,6 +24,7 @@ from pathlib import Path
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+from services.common.policies import DEFAULT_POLICY
 from services.common.cpus import allowed_cpus, format_cpu_list, split_cpus, usable_cpus
 
 HOST = "127.0.0.1"
@@ -94,7 +95,7 @@ class LocalStack:
     slots: int = 8
     policy_workers: int = 1
     families: Sequence[str] = ("libero", "robosuite")
-    models: Sequence[str] = ("scripted-pick-place",)
+    models: Sequence[str] = (DEFAULT_POLICY,)
     workdir: Path | None = None
     extra_env: Mapping[str, str] = field(default_factory=dict)
     heartbeat_interval_ms: int = 1000

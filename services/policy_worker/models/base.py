@@ -49,7 +49,7 @@ def _oracle() -> PolicyModel:
     return OraclePolicy()
 
 
-def _zetta_vla_state() -> PolicyModel:
+def _privileged_state_baseline() -> PolicyModel:
     from services.policy_worker.vla.policy import make_state_policy
 
     return make_state_policy()
@@ -65,9 +65,10 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
     # One generic skill per BDDL goal predicate on privileged state (models/oracle.py; docs/oracle.md).
     "oracle": _oracle,
-    # The Zetta VLA (services/policy_worker/vla): shipped state checkpoint; image variant when trained.
-    "zetta-vla-state": _zetta_vla_state,
+    # The Zetta VLA (services/policy_worker/vla): camera image + proprioception + instruction.
     "zetta-vla-image": _zetta_vla_image,
+    # Its state-based sibling, which reads the simulator's object poses: a baseline, never a default.
+    "privileged-state-baseline": _privileged_state_baseline,
 }
 
 

@@ -12,12 +12,13 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, state_vector
+from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, image_env_config, state_vector
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
 PICK_PLACE_TASKS = (1, 2, 4, 6, 8, 9)
@@ -42,6 +43,11 @@ class DataRecipe:
     processes: int = 2
     keep: str = "successful episodes only"
     image_size: int = 0
+    #: Image recipes render one camera frame every this many steps, the policy-call frequency
+    #: of the served image VLA (it runs ``execute_steps`` actions of a chunk per call): the
+    #: frames a policy is trained on are the ones it will be shown. States and actions are kept
+    #: at every step (chunk targets need them).
+    image_every: int = 2
     time_budget_s: float = 0.0
     #: DAgger rounds: a checkpoint whose policy drives the episode (each step: the teacher's action
     #: with probability ``beta``, else the policy's); every visited state is labelled with the
@@ -74,7 +80,8 @@ def _worker(recipe: dict, jobs, results) -> None:
 
     cfg = {"suite": recipe["suite"]}
     if recipe["image_size"]:
-        cfg.update(cameras=["agentview"], camera_size=recipe["image_size"])
+        cfg.update(image_env_config(recipe["image_size"]))
+    every = max(1, int(recipe.get("image_every", 1))) if recipe["image_size"] else 0
     family = get_family("libero")(get_family("libero").canonical_config(cfg))
     slot = family.init()
     teacher = load_model(recipe["teacher"])
@@ -97,7 +104,7 @@ def _worker(recipe: dict, jobs, results) -> None:
         rng = np.random.default_rng(seed)  # per episode: the noise and the beta mixing replay
         try:
             obs, instruction = slot.reset(ResetSpec(task=str(task), seed=seed, init_state_index=init))
-            states, actions, images = [], [], []
+            states, actions, images, frame_steps = [], [], [], []
             success = False
             queued: list[np.ndarray] = []  # the rest of the student's chunk, as served policies run it
             teacher_turn = True
@@ -116,68 +123,135 @@ def _worker(recipe: dict, jobs, results) -> None:
                 elif recipe.get("action_noise"):
                     executed = action.copy()
                     executed[:6] = np.clip(executed[:6] + rng.normal(0.0, recipe["action_noise"], 6), -1.0, 1.0)
-                states.append(state_vector({n: obs[n][None] for n in names})[0])
-                if recipe["image_size"]:
+                if every and len(states) % every == 0:
+                    frame_steps.append(len(states))
                     images.append(obs[IMAGE_INPUTS[0]])
+                states.append(state_vector({n: obs[n][None] for n in names})[0])
                 actions.append(np.asarray(action, np.float32))
-                out = slot.step(executed)
+                out = slot.step(executed, render=bool(every) and len(states) % every == 0)
                 obs = out.observation
                 if out.success:
                     success = True
                 if out.terminated or out.truncated:
                     break
             results.put((task, seed, init, instruction, success, np.stack(states), np.stack(actions),
-                         np.stack(images) if images else None))
+                         np.stack(images) if images else None, np.asarray(frame_steps, np.int64)))
         except Exception as exc:  # noqa: BLE001 - a failed reset loses one demo, not the run
-            results.put((task, seed, init, repr(exc), False, None, None, None))
+            results.put((task, seed, init, repr(exc), False, None, None, None, None))
     slot.close()
     family.close()
 
 
+#: Recipe fields that say how many episodes run and how, not what one (task, seed) episode holds.
+_COUNT_FIELDS = ("seeds_per_task", "max_episodes", "processes", "time_budget_s")
+
+
+def episode_key(recipe: DataRecipe) -> dict:
+    """What one stored episode depends on: a resumed run may ask for more or fewer episodes
+    (or other processes) and keep the ones it has, never mix teachers, noise or image settings."""
+    return {k: v for k, v in asdict(recipe).items() if k not in _COUNT_FIELDS}
+
+
+def _shard_dir(out_path: str) -> str:
+    return out_path + ".parts"
+
+
+def _save_episode(shard_dir: str, r: tuple) -> None:
+    """One finished episode as its own file, written atomically: a cut-off run resumes from these."""
+    task, seed, init, instruction, success, states, actions, images, frames = r
+    arrays: dict[str, np.ndarray] = {"meta": np.array([task, seed, init, int(success)], np.int64),
+                                     "instruction": np.array(instruction)}
+    if states is not None:
+        arrays.update(states=states, actions=actions)
+        if images is not None:
+            arrays.update(images=images, frame_steps=frames)
+    tmp = os.path.join(shard_dir, f".{task}_{seed}.tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, os.path.join(shard_dir, f"{task}_{seed}.npz"))
+
+
+def _load_episode(path: str) -> tuple:
+    with np.load(path, allow_pickle=False) as z:
+        task, seed, init, success = (int(v) for v in z["meta"])
+        get = lambda k: z[k] if k in z else None  # noqa: E731 - absent for failed resets
+        return (task, seed, init, str(z["instruction"]), bool(success), get("states"), get("actions"),
+                get("images"), get("frame_steps"))
+
+
 def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
-    """Run the recipe, save an .npz of successful demos, return a summary."""
+    """Run the recipe, save an .npz of successful demos, return a summary.
+
+    Every finished episode is stored on its own under ``<out_path>.parts`` first, so a run that
+    is cut off (a session ending, a crash) resumes with the episodes it has not run yet; the
+    parts are removed once the assembled file is written.
+    """
     if not recipe.teacher:
         recipe.teacher = default_teacher()
-    ctx = mp.get_context("spawn")
-    jobs, results = ctx.Queue(), ctx.Queue()
+    if recipe.image_size and recipe.dagger_checkpoint and recipe.image_every != recipe.execute_steps:
+        raise ValueError(f"DAgger with an image student needs image_every == execute_steps "
+                         f"({recipe.image_every} != {recipe.execute_steps}): the student reads a frame per call")
+    shard_dir = _shard_dir(out_path)
+    os.makedirs(shard_dir, exist_ok=True)
+    recipe_file = os.path.join(shard_dir, "recipe.json")
+    key = episode_key(recipe)
+    if os.path.exists(recipe_file) and json.loads(open(recipe_file).read()) != key:
+        raise ValueError(f"{shard_dir} holds episodes of another recipe; remove it or choose another --out")
+    with open(recipe_file, "w") as f:
+        json.dump(key, f)
     episodes = recipe.episodes()
+    results_by_key = {}
     for e in episodes:
-        jobs.put(e)
-    for _ in range(recipe.processes):
-        jobs.put(None)
-    procs = [ctx.Process(target=_worker, args=(asdict(recipe), jobs, results), daemon=True)
-             for _ in range(recipe.processes)]
-    for p in procs:
-        p.start()
+        part = os.path.join(shard_dir, f"{e[0]}_{e[1]}.npz")
+        if os.path.exists(part):
+            results_by_key[(e[0], e[1])] = _load_episode(part)
+    todo = [e for e in episodes if (e[0], e[1]) not in results_by_key]
+    if results_by_key:
+        log(f"resuming: {len(results_by_key)} of {len(episodes)} episodes already in {shard_dir}")
     start = time.monotonic()
-    kept: list[tuple] = []
-    per_task: dict[int, list[int]] = {}
-    done = 0
-    try:
-        while done < len(episodes):
-            if recipe.time_budget_s and time.monotonic() - start > recipe.time_budget_s:
-                log(f"time budget {recipe.time_budget_s:.0f}s reached after {done} episodes")
-                break
-            try:
-                r = results.get(timeout=5)
-            except Exception:  # noqa: BLE001 - queue.Empty
-                if not any(p.is_alive() for p in procs):
-                    break
-                continue
-            done += 1
-            task, seed, init, instruction, success, states, actions, images = r
-            stats = per_task.setdefault(task, [0, 0])
-            stats[1] += 1
-            if success:
-                stats[0] += 1
-            if success or (recipe.dagger_checkpoint and r[5] is not None):
-                kept.append(r)
-            if done % 20 == 0:
-                log(f"{done}/{len(episodes)} episodes, {len(kept)} kept, {time.monotonic() - start:.0f}s")
-    finally:
+    if todo:
+        ctx = mp.get_context("spawn")
+        results = ctx.Queue()
+        # Each process runs its own share of the tasks: a family keeps one warm env (with its
+        # renderer, about 0.5 GB) per task it has run, so sharing every task costs every process.
+        queues = [ctx.Queue() for _ in range(recipe.processes)]
+        for e in todo:
+            queues[recipe.tasks.index(e[0]) % recipe.processes].put(e)
+        for q in queues:
+            q.put(None)
+        procs = [ctx.Process(target=_worker, args=(asdict(recipe), q, results), daemon=True) for q in queues]
         for p in procs:
-            p.terminate()
-            p.join(timeout=5)
+            p.start()
+        done = 0
+        try:
+            while done < len(todo):
+                if recipe.time_budget_s and time.monotonic() - start > recipe.time_budget_s:
+                    log(f"time budget {recipe.time_budget_s:.0f}s reached after {done} episodes")
+                    break
+                try:
+                    r = results.get(timeout=5)
+                except Exception:  # noqa: BLE001 - queue.Empty
+                    if not any(p.is_alive() for p in procs):
+                        break
+                    continue
+                done += 1
+                _save_episode(shard_dir, r)
+                results_by_key[(r[0], r[1])] = r
+                if done % 20 == 0:
+                    log(f"{len(results_by_key)}/{len(episodes)} episodes, {time.monotonic() - start:.0f}s")
+        finally:
+            for p in procs:
+                p.terminate()
+                p.join(timeout=5)
+    ordered = [results_by_key[(e[0], e[1])] for e in episodes if (e[0], e[1]) in results_by_key]
+    per_task: dict[int, list[int]] = {}
+    kept: list[tuple] = []
+    for r in ordered:
+        stats = per_task.setdefault(r[0], [0, 0])
+        stats[1] += 1
+        stats[0] += int(r[4])
+        if r[4] or (recipe.dagger_checkpoint and r[5] is not None):
+            kept.append(r)
+    done = len(ordered)
     ep_len = np.array([len(k[6]) for k in kept], dtype=np.int64)
     arrays = {
         "states": np.concatenate([k[5] for k in kept]).astype(np.float32),
@@ -188,7 +262,10 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
         "instructions": np.array([k[3] for k in kept]),
     }
     if recipe.image_size:
+        offsets = np.concatenate([[0], np.cumsum(ep_len)[:-1]])
         arrays["images"] = np.concatenate([k[7] for k in kept])
+        #: Global transition index of each image (frames are taken every ``image_every`` steps).
+        arrays["image_steps"] = np.concatenate([k[8] + o for k, o in zip(kept, offsets)])
     os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
     np.savez_compressed(out_path, **arrays)
     summary = {
@@ -201,6 +278,7 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
     }
     with open(out_path + ".json", "w") as f:
         json.dump(summary, f, indent=2)
+    shutil.rmtree(shard_dir, ignore_errors=True)
     return summary
 
 

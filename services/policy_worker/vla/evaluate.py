@@ -15,6 +15,7 @@ import os
 import time
 from pathlib import Path
 
+from services.common.policies import DEFAULT_POLICY
 from zetta.stats import wilson
 
 
@@ -24,16 +25,14 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     import torch
 
     torch.set_num_threads(1)
+    from services.common.specs import render_config
     from services.env_worker.families.base import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
     policy = load_model(model)
     specs = policy.input_specs()
     names = [s.name for s in specs]
-    config = {"suite": suite}
-    cameras = [s for s in specs if s.name.endswith("_image")]
-    if cameras:  # an image policy: the env renders the cameras it reads, at its size
-        config.update(cameras=[s.name[: -len("_image")] for s in cameras], camera_size=cameras[0].shape[0])
+    config = {"suite": suite, **render_config(specs)}  # an image policy: the cameras it reads
     fam_cls = get_family("libero")
     family = fam_cls(fam_cls.canonical_config(config))
     slot = family.init()
@@ -48,8 +47,9 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
             success, steps, done = False, 0, False
             while not done:
                 chunk = policy.infer({n: obs[n][None] for n in names}, [instruction])[0]
-                for action in chunk[: max(1, execute_steps)]:
-                    out = slot.step(np.asarray(action, np.float32))
+                actions = chunk[: max(1, execute_steps)]
+                for i, action in enumerate(actions):  # frames only for the next policy call
+                    out = slot.step(np.asarray(action, np.float32), render=i == len(actions) - 1)
                     obs, steps = out.observation, steps + 1
                     if out.success or out.terminated or out.truncated:
                         success, done = out.success, True
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(description="evaluate a policy on LIBERO suites")
-    p.add_argument("--model", default="zetta-vla-state")
+    p.add_argument("--model", default=DEFAULT_POLICY)
     p.add_argument("--suites", default="libero_goal,libero_goal_task,libero_goal_swap")
     p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
     p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed %% 50")
@@ -150,7 +150,7 @@ def main(argv=None) -> int:
     if a.quantize:
         env["ZETTA_VLA_QUANTIZE"] = a.quantize
     if a.checkpoint:
-        env["ZETTA_VLA_IMAGE_CHECKPOINT" if a.model == "zetta-vla-image" else "ZETTA_VLA_CHECKPOINT"] = a.checkpoint
+        env["ZETTA_VLA_CHECKPOINT" if a.model == DEFAULT_POLICY else "ZETTA_STATE_BASELINE_CHECKPOINT"] = a.checkpoint
     tasks = [int(t) for t in a.tasks.split(",")]
     seeds = list(range(a.seed_offset, a.seed_offset + a.seeds))
     rows = []

@@ -22,7 +22,8 @@ from services.policy_worker.vla.text import TextEncoder
 
 #: Shipped checkpoints, relative to the repository root.
 CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
-STATE_CHECKPOINT = CHECKPOINT_ROOT / "zetta-vla-state"
+#: The state-based variant reads the simulator's object poses: a privileged baseline, never a default.
+STATE_CHECKPOINT = CHECKPOINT_ROOT / "privileged-state-baseline"
 IMAGE_CHECKPOINT = CHECKPOINT_ROOT / "zetta-vla-image"
 
 
@@ -32,7 +33,9 @@ def save_checkpoint(path: str | os.PathLike, model: ZettaVLA, meta: dict, text_c
     state = {k: (v.half() if v.is_floating_point() and not k.endswith(("_mean", "_std")) else v)
              for k, v in model.state_dict().items()}
     torch.save(state, path / "model.pt")
-    doc = {"model": model.cfg.to_dict(), **meta,
+    inputs = [{"name": s.name, "dtype": s.dtype, "shape": list(s.shape), "privileged": s.privileged}
+              for s in state_specs(model.cfg.image_size)]
+    doc = {"model": model.cfg.to_dict(), "inputs": inputs, **meta,
            "instruction_embeddings": {k: [round(float(x), 6) for x in v] for k, v in sorted(text_cache.items())}}
     (path / "config.json").write_text(json.dumps(doc, indent=1))
 
@@ -55,7 +58,7 @@ class ZettaVLAPolicy:
     plug-in can work on either one alone.
     """
 
-    def __init__(self, checkpoint: str | os.PathLike = STATE_CHECKPOINT, name: str = "zetta-vla-state",
+    def __init__(self, checkpoint: str | os.PathLike = IMAGE_CHECKPOINT, name: str = "zetta-vla-image",
                  quantize: str = "", device: str = "cpu", threads: int = 0, noise: str | None = None,
                  seed: int = 0, trace: bool = True) -> None:
         if threads:
@@ -204,10 +207,11 @@ def vla_device() -> str:
 
 
 def make_state_policy() -> ZettaVLAPolicy:
-    return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_CHECKPOINT", str(STATE_CHECKPOINT)),
-                          quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), device=vla_device(), threads=_threads())
+    return ZettaVLAPolicy(os.environ.get("ZETTA_STATE_BASELINE_CHECKPOINT", str(STATE_CHECKPOINT)),
+                          name="privileged-state-baseline", quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""),
+                          device=vla_device(), threads=_threads())
 
 
 def make_image_policy() -> ZettaVLAPolicy:
-    return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_IMAGE_CHECKPOINT", str(IMAGE_CHECKPOINT)), name="zetta-vla-image",
-                          device=vla_device(), threads=_threads())
+    return ZettaVLAPolicy(os.environ.get("ZETTA_VLA_CHECKPOINT", str(IMAGE_CHECKPOINT)), name="zetta-vla-image",
+                          quantize=os.environ.get("ZETTA_VLA_QUANTIZE", ""), device=vla_device(), threads=_threads())

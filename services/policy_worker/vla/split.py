@@ -111,14 +111,14 @@ class SplitVLA:
 
     def __init__(self, checkpoint: str | None = None, quantize: str = "", device: str = "cpu",
                  vlm: SchedulerConfig | None = None, ae: SchedulerConfig | None = None,
-                 slots: int = 4096, threads: int = 1, name: str = "zetta-vla-state",
+                 slots: int = 4096, threads: int = 1, name: str = "zetta-vla-image",
                  observer: SchedulerObserver | None = None, policy=None) -> None:
-        from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy
+        from services.policy_worker.vla.policy import IMAGE_CHECKPOINT, ZettaVLAPolicy
 
         torch.set_num_threads(max(1, threads))
         self.name = name
         if policy is None:
-            policy = ZettaVLAPolicy(str(checkpoint or STATE_CHECKPOINT), quantize=quantize, device=device)
+            policy = ZettaVLAPolicy(str(checkpoint or IMAGE_CHECKPOINT), name=name, quantize=quantize, device=device)
         checkpoint, quantize, device = policy.checkpoint, policy.quantize, str(policy.device)
         self.policy = policy
         self.policy.keep_stage(1)
@@ -222,10 +222,10 @@ class MonolithicVLA:
 
     def __init__(self, checkpoint: str | None = None, quantize: str = "", device: str = "cpu",
                  config: SchedulerConfig | None = None, threads: int = 1) -> None:
-        from services.policy_worker.vla.policy import STATE_CHECKPOINT, ZettaVLAPolicy
+        from services.policy_worker.vla.policy import IMAGE_CHECKPOINT, ZettaVLAPolicy
 
         torch.set_num_threads(max(1, threads))
-        self.policy = ZettaVLAPolicy(str(checkpoint or STATE_CHECKPOINT), quantize=quantize, device=device)
+        self.policy = ZettaVLAPolicy(str(checkpoint or IMAGE_CHECKPOINT), quantize=quantize, device=device)
         self.chunk_size = self.policy.chunk_size
         self._sched = BatchScheduler(lambda _m, x, i: self.policy.infer(x, i), config or SchedulerConfig())
 
@@ -283,7 +283,7 @@ def wrap_for_split(scheduler: BatchScheduler, models: dict, config: SchedulerCon
 
     split = {}
     for name, model in models.items():
-        if isinstance(model, ZettaVLAPolicy) and not model.cfg.image_size:
+        if isinstance(model, ZettaVLAPolicy):
             split[name] = SplitVLA(vlm=config, ae=config, threads=int(os.environ.get("ZETTA_TORCH_THREADS", "1")),
                                    name=name, observer=observer, policy=model)
     return SplitRouter(scheduler, split) if split else scheduler

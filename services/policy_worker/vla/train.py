@@ -39,6 +39,11 @@ class TrainConfig:
     #: 1 by default: with env processes on the same cores, more intra-op threads spin and slow down.
     threads: int = 1
     time_budget_s: float = 0.0
+    #: Image variant: frames are shifted by up to this many pixels (replicate padding), the usual
+    #: augmentation of image behaviour cloning: small camera and layout shifts stop mattering.
+    image_shift: int = 4
+    #: Training state (weights, optimizer, schedule, RNG) is saved this often; a cut-off run resumes.
+    checkpoint_every: int = 1000
 
 
 def load_demos(paths: list[str]) -> dict:
@@ -46,6 +51,10 @@ def load_demos(paths: list[str]) -> dict:
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("states", "actions", "episode_lengths", "instructions")}
     if all("images" in p for p in parts):
         out["images"] = np.concatenate([p["images"] for p in parts])
+        offsets = np.cumsum([0] + [len(p["states"]) for p in parts[:-1]])
+        out["image_steps"] = np.concatenate([
+            (p["image_steps"] if "image_steps" in p else np.arange(len(p["states"]))) + o
+            for p, o in zip(parts, offsets)])
     recipes = []
     for p in paths:
         meta = Path(p + ".json")
@@ -53,6 +62,60 @@ def load_demos(paths: list[str]) -> dict:
             recipes.append(json.loads(meta.read_text()))
     out["recipes"] = recipes
     return out
+
+
+def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
+    """uint8 [B, H, W, C] frames, each shifted by up to ``pad`` pixels in x and y."""
+    if pad <= 0:
+        return images
+    b, h, w, _ = images.shape
+    padded = torch.nn.functional.pad(images.permute(0, 3, 1, 2).float(), (pad, pad, pad, pad), mode="replicate")
+    dx = torch.randint(0, 2 * pad + 1, (b,))
+    dy = torch.randint(0, 2 * pad + 1, (b,))
+    rows = (dy[:, None] + torch.arange(h)[None])[:, None, :, None].expand(b, padded.shape[1], h, w + 2 * pad)
+    out = padded.gather(2, rows)
+    cols = (dx[:, None] + torch.arange(w)[None])[:, None, None, :].expand(b, padded.shape[1], h, w)
+    out = out.gather(3, cols)
+    return out.permute(0, 2, 3, 1).to(torch.uint8)
+
+
+class Resume:
+    """The training state of a run in progress, next to its output (``<out_dir>.resume.pt``).
+
+    A run restarted with the same output, configs and init continues from the last saved step
+    with the same optimizer, schedule and RNG state; anything else starts afresh."""
+
+    def __init__(self, out_dir: str, cfg: TrainConfig, model_cfg: VLAConfig, init: str) -> None:
+        self.path = Path(str(out_dir).rstrip("/") + ".resume.pt")
+        self.key = json.dumps({"train": asdict(cfg), "model": model_cfg.to_dict(), "init": init}, sort_keys=True)
+        self.seconds = 0.0
+        self.losses: list[float] = []
+
+    def restore(self, model, opt, sched, log=print) -> int:
+        if not self.path.exists():
+            return 0
+        state = torch.load(self.path, weights_only=False)
+        if state.get("key") != self.key:
+            log(f"{self.path} belongs to another configuration: starting afresh")
+            return 0
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        torch.set_rng_state(state["rng"])
+        self.seconds, self.losses = state["seconds"], state["losses"]
+        log(f"resuming training at step {state['step']} from {self.path}")
+        return int(state["step"])
+
+    def save(self, step: int, model, opt, sched, losses: list[float], seconds: float) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"key": self.key, "step": step, "model": model.state_dict(), "opt": opt.state_dict(),
+                    "sched": sched.state_dict(), "rng": torch.get_rng_state(), "losses": losses[-500:],
+                    "seconds": seconds}, tmp)
+        tmp.replace(self.path)
+
+    def clear(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def chunk_targets(actions: np.ndarray, lengths: np.ndarray, chunk: int) -> np.ndarray:
@@ -91,9 +154,12 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
 
         states = demos["states"][:, :PROPRIO_DIM]
         images = torch.from_numpy(demos["images"])
+        #: Samples are the transitions that have a frame (every ``image_every`` steps).
+        sample_steps = torch.from_numpy(demos["image_steps"])
     else:
         states = demos["states"]
         images = None
+        sample_steps = None
     actions = demos["actions"]
     targets = chunk_targets(actions, lengths, model_cfg.chunk)
     model = ZettaVLA(model_cfg)
@@ -123,18 +189,21 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / cfg.warmup) * 0.5 * (1 + np.cos(np.pi * min(1.0, s / cfg.steps))))
-    n = len(S)
+    n = len(S) if sample_steps is None else len(sample_steps)
     log(f"training on {len(lengths)} demos, {n} transitions, {len(uniq)} instructions, "
         f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params, device {device}")
-    start = time.monotonic()
-    losses = []
-    step = 0
-    for step in range(cfg.steps):
-        idx = torch.randint(0, n, (cfg.batch_size,), device=device)
+    resume = Resume(out_dir, cfg, model_cfg, init)
+    first = resume.restore(model, opt, sched, log)
+    start = time.monotonic() - resume.seconds
+    losses = resume.losses
+    step = first - 1
+    for step in range(first, cfg.steps):
+        pick = torch.randint(0, n, (cfg.batch_size,), device=device)
+        idx = pick if sample_steps is None else sample_steps[pick.cpu()].to(device)
         state = S[idx]
         if cfg.state_noise:
             state = state + cfg.state_noise * torch.randn_like(state) * model.state_std
-        img = images[idx.cpu()].to(device) if images is not None else None
+        img = random_shift(images[pick.cpu()], cfg.image_shift).to(device) if images is not None else None
         loss = model.loss(state, E[TI[idx]], A[idx], img)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -144,6 +213,8 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
         losses.append(loss.item())
         if (step + 1) % 500 == 0:
             log(f"step {step + 1}/{cfg.steps} loss {np.mean(losses[-500:]):.4f} {time.monotonic() - start:.0f}s")
+        if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.steps:
+            resume.save(step + 1, model, opt, sched, losses, time.monotonic() - start)
         if cfg.time_budget_s and time.monotonic() - start > cfg.time_budget_s:
             log(f"time budget reached at step {step + 1}")
             break
@@ -157,6 +228,7 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
         **(extra_meta or {}),
     }
     save_checkpoint(out_dir, model, meta, texts.cache)
+    resume.clear()
     log(f"saved {out_dir} ({sum(f.stat().st_size for f in Path(out_dir).iterdir()) / 1e6:.1f} MB) after {seconds:.0f}s")
     return meta
 
@@ -210,7 +282,8 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
     def gather(name: str, episodes: int, **kw) -> str:
         path = f"{demo_dir}/{name}.npz"
         recipe = DataRecipe(tasks=tasks, teacher=teacher, processes=processes, image_size=model_cfg.image_size,
-                            seeds_per_task=-(-episodes // len(tasks)), max_episodes=episodes, **kw)
+                            image_every=pipe.execute_steps, seeds_per_task=-(-episodes // len(tasks)),
+                            max_episodes=episodes, **kw)
         if reuse_demos(recipe, path):
             log(f"reusing {path}: its recipe is this one")
             return path
@@ -222,15 +295,34 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
     if pipe.noisy_episodes:
         data.append(gather("noisy", pipe.noisy_episodes, seed_offset=2000, action_noise=pipe.action_noise))
     stages = [f"{out}-round{r}" for r in range(pipe.dagger_rounds)] + [out]
-    result = train(data, stages[0], model_cfg, dataclasses_replace(train_cfg, steps=pipe.steps, lr=pipe.lr),
-                   log=log, extra_meta=meta)
+    def stage(out_dir: str, cfg: TrainConfig, init: str = "") -> dict:
+        done = finished_stage(out_dir, data, cfg, init)
+        if done is not None:
+            log(f"reusing {out_dir}: trained on these files with this configuration")
+            return done
+        return train(list(data), out_dir, model_cfg, cfg, log=log, init=init, extra_meta=meta)
+
+    result = stage(stages[0], dataclasses_replace(train_cfg, steps=pipe.steps, lr=pipe.lr))
     for r in range(pipe.dagger_rounds):
         data.append(gather(f"dagger{r + 1}", pipe.dagger_episodes, seed_offset=3000 + 1000 * r,
                            dagger_checkpoint=stages[r], beta=pipe.beta, execute_steps=pipe.execute_steps))
-        result = train(data, stages[r + 1], model_cfg,
-                       dataclasses_replace(train_cfg, steps=pipe.finetune_steps, lr=pipe.finetune_lr),
-                       log=log, init=stages[r], extra_meta=meta)
+        result = stage(stages[r + 1], dataclasses_replace(train_cfg, steps=pipe.finetune_steps, lr=pipe.finetune_lr),
+                       init=stages[r])
     return result
+
+
+def finished_stage(out_dir: str, data: list[str], cfg: TrainConfig, init: str) -> dict | None:
+    """The stored meta of ``out_dir`` when it was trained to the end on exactly ``data`` with ``cfg``
+    (a resumed pipeline skips it), else None."""
+    path = Path(out_dir) / "config.json"
+    if not path.exists():
+        return None
+    meta = json.loads(path.read_text())
+    training = meta.get("training", {})
+    want = {**asdict(cfg), "init": init}
+    if meta.get("data", {}).get("files") != [str(p) for p in data] or any(training.get(k) != v for k, v in want.items()):
+        return None
+    return meta if training.get("steps_done") == cfg.steps else None
 
 
 def main(argv=None) -> int:

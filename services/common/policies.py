@@ -1,0 +1,37 @@
+"""Which policy a stack serves when nobody says, and what its sessions must render for it.
+
+The shipped default is the image VLA: it reads the agentview camera, the robot's own
+proprioception and the instruction, nothing the simulator alone knows. Clients that create
+sessions for it (the demo, the evolver, the benchmarks) take the env config from here, so the
+env renders exactly the camera the checkpoint was trained on, at its size.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from services.common.specs import TensorSpec, render_config
+
+#: The frozen policy every command uses unless told otherwise.
+DEFAULT_POLICY = "zetta-vla-image"
+#: The state-based VLA that reads object poses; loadable for comparison, never a default.
+PRIVILEGED_BASELINE = "privileged-state-baseline"
+
+_CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "policy_worker" / "checkpoints"
+
+
+def default_checkpoint() -> Path:
+    """The image VLA's checkpoint directory (``ZETTA_VLA_CHECKPOINT`` or the shipped one)."""
+    return Path(os.environ.get("ZETTA_VLA_CHECKPOINT") or _CHECKPOINT_ROOT / DEFAULT_POLICY)
+
+
+def policy_env_config(model: str) -> dict[str, Any]:
+    """Env-config keys a model's sessions need (its cameras and their size, reflections off), {} for
+    a model that reads no image. Read from the checkpoint's config.json: no model is loaded."""
+    if model != DEFAULT_POLICY:
+        return {}
+    doc = json.loads((default_checkpoint() / "config.json").read_text())
+    return render_config([TensorSpec(i["name"], i["dtype"], tuple(i["shape"])) for i in doc["inputs"]])
