@@ -24,21 +24,33 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig  # noqa: E402
-from services.policy_worker.vla.features import STATE_INPUTS  # noqa: E402
+from services.common.specs import TensorSpec  # noqa: E402
 
 SLO = 0.2
+#: The served checkpoint's inputs (set in main): camera frames and proprioception for the image VLA.
+SPECS: list[TensorSpec] = []
 
 
 def sample_inputs(n: int, seed: int = 0) -> list[dict[str, np.ndarray]]:
+    """``n`` requests shaped as the checkpoint declares: random frames, small proprioception values."""
     rng = np.random.default_rng(seed)
-    return [{name: rng.standard_normal(w).astype(np.float32) * 0.1 for name, w in STATE_INPUTS} for _ in range(n)]
+
+    def one(spec: TensorSpec) -> np.ndarray:
+        if spec.dtype == "uint8":
+            return rng.integers(0, 256, spec.shape, dtype=np.uint8)
+        return rng.standard_normal(spec.shape).astype(spec.dtype) * 0.1
+
+    return [{s.name: one(s) for s in SPECS} for _ in range(n)]
+
+
+def stack(rows: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {s.name: np.stack([r[s.name] for r in rows]) for s in SPECS}
 
 
 def throughput(policy, instruction: str, batches=(1, 4, 16, 32), seconds: float = 1.0) -> dict[int, tuple[float, float]]:
     out = {}
     for b in batches:
-        rows = sample_inputs(b)
-        batch = {n: np.stack([r[n] for r in rows]) for n, _ in STATE_INPUTS}
+        batch = stack(sample_inputs(b))
         policy.infer(batch, [instruction] * b)
         calls, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < seconds:
@@ -58,8 +70,7 @@ def traced_vs_eager(checkpoint: str | None, instruction: str, batches=(1, 4, 16,
     pols = {"eager": ZettaVLAPolicy(trace=False, **kw), "traced": ZettaVLAPolicy(**kw)}
     out = {}
     for b in batches:
-        rows = sample_inputs(b, seed=b)
-        batch = {n: np.stack([r[n] for r in rows]) for n, _ in STATE_INPUTS}
+        batch = stack(sample_inputs(b, seed=b))
         texts = [instruction] * b
         answers = {k: p.infer(batch, texts) for k, p in pols.items()}
         assert np.array_equal(answers["eager"], answers["traced"]), "the trace changed the actions"
@@ -178,7 +189,9 @@ def main() -> None:
     flt = ZettaVLAPolicy(args.checkpoint) if args.checkpoint else ZettaVLAPolicy()
     q = ZettaVLAPolicy(args.checkpoint, quantize="w8a8") if args.checkpoint else ZettaVLAPolicy(quantize="w8a8")
     instruction = sorted(flt.text.cache)[0]
-    print(f"checkpoint: {flt.cfg.to_dict()}  torch threads {torch.get_num_threads()}  quantized: {q.quantized}")
+    SPECS[:] = flt.input_specs()
+    print(f"checkpoint: {flt.checkpoint} inputs {[(sp.name, list(sp.shape)) for sp in SPECS]}")
+    print(f"config: {flt.cfg.to_dict()}  torch threads {torch.get_num_threads()}  quantized: {q.quantized}")
     if "trace" in only:
         print_traced(traced_vs_eager(args.checkpoint, instruction))
     if "throughput" not in only:
@@ -194,8 +207,7 @@ def main() -> None:
     # Stage-1-only timing: what the plug-in actually changes.
     import torch as _t
 
-    rows = sample_inputs(32)
-    batch = {n: np.stack([r[n] for r in rows]) for n, _ in STATE_INPUTS}
+    batch = stack(sample_inputs(32))
     for name, pol in (("float", flt), ("w8a8", q)):
         pol.encode(batch, [instruction] * 32)
         t0, k = time.perf_counter(), 0

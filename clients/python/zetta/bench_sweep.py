@@ -2,7 +2,8 @@
 
 Every figure of docs/throughput.md comes from one invocation, so that the rows compare under the
 same load (the machine may be shared; the 1-minute load average is recorded with every row).
-All rows run the same episodes: LIBERO-Goal ``--task`` (state only), episode i from init state
+All rows run the same episodes: LIBERO-Goal ``--task`` rendering the camera the policy reads (the
+image VLA: agentview at its size, once per policy call; nothing for a state policy), episode i from init state
 i % 50 and seed i // 50 (see :func:`episode_key`), a fixed step budget ``--max-steps`` (episode
 length depends on success, so steps/s is reported next to episodes/min), the same policy
 (``--model``, default the shipped ``zetta-vla-image``), whose action chunks are executed whole.
@@ -10,7 +11,7 @@ length depends on success, so steps/s is reported next to episodes/min), the sam
 rows
   naive        one process, episodes one after another, a LIBERO env built from scratch for every
                episode with LIBERO's own ``env.step`` (``fast_step: false``), the policy in-process
-               on a batch of one; half of its episodes run first, half last, so drifting load
+               on a batch of one, camera frames rendered at every step as robosuite does; half of its episodes run first, half last, so drifting load
                weighs on both ends of the run
   naive-fast   the same loop on our fast step path (a reference row: what the step path alone gives)
   stack        ``LocalStack`` (Redis, gateway, critic service, env workers each pinned to its own
@@ -20,7 +21,9 @@ rows
                (``ZETTA_RESOURCE_SHARING=false``: every session compiles its own scene) off
   limit        one process per core, no infrastructure, no policy: reset, then the actions the
                policy takes on ``--limit-keys`` keys spread over the stacks' init states and seeds
-               (:func:`limit_keys`), through the fast step path (``FastStepper.step``)
+               (:func:`limit_keys`), through the fast step path (``FastStepper.step``), rendering the
+               policy's camera after each chunk of actions, rendering the
+               policy's camera after each chunk of actions
   limit-obs    the same with the slot's step as a chunked policy needs it: milestones, success
                and the signals' state every step, the canonical observation the policy reads
                after each action chunk
@@ -56,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY, policy_env_config
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
@@ -193,9 +196,16 @@ def episode_key(i: int) -> tuple[int, int]:
     return i // 50, i % 50
 
 
+#: The policy whose inputs every row's envs render (set by :func:`sweep` before any process starts,
+#: so the limit processes it spawns see it too).
+MODEL_VARIABLE = "ZETTA_BENCH_MODEL"
+
+
 def env_config(task: str, max_steps: int, fast_step: bool = True) -> dict[str, Any]:
-    """The LIBERO config every row uses (state only)."""
-    return {"suite": SUITE, "task": task, "max_steps": max_steps, "fast_step": fast_step}
+    """The LIBERO config every row uses: the cameras the benchmarked policy reads, at its size
+    (:func:`services.common.policies.policy_env_config`; none for a state policy)."""
+    render = policy_env_config(os.environ.get(MODEL_VARIABLE, DEFAULT_MODEL))
+    return {"suite": SUITE, "task": task, "max_steps": max_steps, "fast_step": fast_step, **render}
 
 
 def load_average() -> float:
@@ -368,12 +378,16 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
     The episode is ``key`` (seed, init state index), by default :func:`episode_key` of ``index``;
     the step budget is the env's own (``max_steps`` in its config truncates the episode). Returns
     the episode (with the seconds the env build took) and the actions it executed, which the
-    ``limit`` rows replay. bench/bench_rollout.py runs its naive baseline through this too.
+    ``limit`` rows replay. bench/bench_rollout.py runs its naive baseline through this too. A
+    policy that reads camera frames gets them rendered at every step, as robosuite's own
+    ``env.step`` does, on the naive row; the fast row renders only the observation the policy reads.
     """
     from services.env_worker.families.base import ResetSpec, get_family
 
     start = time.perf_counter()
-    family = get_family("libero")(env_config(task, max_steps, fast_step))  # a new group: nothing cached
+    config = env_config(task, max_steps, fast_step)
+    family = get_family("libero")(config)  # a new group: nothing cached
+    every_step = bool(config.get("cameras")) and not fast_step
     slot = family.init()
     build_s = time.perf_counter() - start
     executed: list[np.ndarray] = []
@@ -384,8 +398,8 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
         while slot.episode_step < max_steps:
             chunk = policy.infer({k: v[None] for k, v in obs.items()}, [instruction])[0]
             outcome = None
-            for action in chunk:
-                outcome = slot.step(action, render=False)
+            for i, action in enumerate(chunk):
+                outcome = slot.step(action, render=every_step or i == len(chunk) - 1)
                 executed.append(np.asarray(action))
                 if outcome.terminated or outcome.truncated:
                     break
@@ -463,8 +477,10 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: Any, seed: int, b
 
         select_gl_backend()
         warm_up()
-        family = get_family("libero")(env_config(task, max_steps))
+        config = env_config(task, max_steps)
+        family = get_family("libero")(config)
         slot = family.init()
+        cameras = list(config.get("cameras", ()))
         replays = list(replays) or random_replays(seed, max_steps)
         slot.reset(ResetSpec(task=task, seed=seed))
         stepper = make_stepper(slot._env, True)
@@ -485,8 +501,10 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: Any, seed: int, b
                 settled.forget(slot._env)
                 slot.reset(ResetSpec(task=task, seed=key_seed, init_state_index=init))
                 if kind == "fast":
-                    for a in actions:
+                    for i, a in enumerate(actions):
                         stepper.step(a.astype(np.float64))
+                        if cameras and (i % chunk == chunk - 1 or i == len(actions) - 1):
+                            slot._renderer.render(cameras)  # the frames a policy call reads
                 else:
                     for i, a in enumerate(actions):
                         slot.step(a, observe=i % chunk == chunk - 1 or i == len(actions) - 1)
@@ -996,6 +1014,7 @@ def sweep(args: argparse.Namespace, log: Log) -> Results:
 
     res = Results(vars(args).copy(), machine(), time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), load_average())
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
+    os.environ[MODEL_VARIABLE] = args.model
     with quiet_fds():
         policy = load_model(args.model)
     obs, instruction = sample_observation(args.task, args.max_steps)

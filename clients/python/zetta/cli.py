@@ -30,12 +30,15 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from services.common.policies import DEFAULT_POLICY, policy_env_config
 from zetta.client import Gateway, SessionGroup
 from zetta.hops import histograms, scrape
 from zetta.stats import wilson
 from zetta.v1 import types_pb2
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
+#: Actions of each chunk executed before the policy is asked again (the VLA's evaluation setting).
+DEMO_EXECUTE_STEPS = 4
 
 
 @dataclass
@@ -59,12 +62,15 @@ class DemoResult:
         return 60.0 * self.episodes / self.rollout_s if self.rollout_s > 0 else 0.0
 
 
-async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int) -> DemoResult:
-    """Create ``episodes`` sessions, run one episode in each concurrently, close them."""
+async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int,
+                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS) -> DemoResult:
+    """Create ``episodes`` sessions, run one episode in each concurrently, close them.
+
+    The sessions render what ``model`` reads (the shipped image VLA: its camera, at its size)."""
     async with Gateway(address) as gw:
         t0 = time.perf_counter()
         sessions = await gw.create_sessions(
-            env_family="libero", n=episodes, env_config={"suite": suite, "task": task}
+            env_family="libero", n=episodes, env_config={"suite": suite, "task": task, **policy_env_config(model)}
         )
         create_s = time.perf_counter() - t0
         try:
@@ -72,18 +78,19 @@ async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str
             inits = [i % 50 for i in range(episodes)]
             if mode == "run_episode":
                 summaries = await sessions.run_episode(task=task, seed=list(range(episodes)), init_state_index=inits,
-                                                       max_steps=max_steps)
+                                                       max_steps=max_steps, model=model, execute_steps=execute_steps)
                 successes = sum(s.success for s in summaries)
                 steps = sum(s.steps for s in summaries)
             else:
-                successes, steps = await _policy_step_loop(sessions, task, inits, max_steps)
+                successes, steps = await _policy_step_loop(sessions, task, inits, max_steps, model, execute_steps)
             rollout_s = time.perf_counter() - t1
         finally:
             await sessions.close()
     return DemoResult(episodes, successes, steps, create_s, rollout_s)
 
 
-async def _policy_step_loop(sessions: SessionGroup, task: str, inits: Sequence[int], max_steps: int) -> tuple[int, int]:
+async def _policy_step_loop(sessions: SessionGroup, task: str, inits: Sequence[int], max_steps: int, model: str,
+                            execute_steps: int) -> tuple[int, int]:
     """The paper's listing: reset, then policy_step on every running session until all end."""
     resets = await sessions.reset(task=task, seed=list(range(len(sessions))), init_state_index=list(inits))
     budget = max_steps or resets[0].max_steps
@@ -91,7 +98,7 @@ async def _policy_step_loop(sessions: SessionGroup, task: str, inits: Sequence[i
     successes = 0
     steps = 0
     while running:
-        results = await sessions.subset(running).policy_step()
+        results = await sessions.subset(running).policy_step(model=model, execute_steps=execute_steps)
         still = []
         for r in results:
             if r.done or r.episode_step >= budget:
@@ -136,7 +143,7 @@ def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
 def cmd_up(args: argparse.Namespace) -> int:
     from zetta.local_stack import LocalStack
 
-    stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1)
+    stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1, models=(args.model,))
     print(f"starting redis, gateway, {args.env_workers} env workers x {args.slots} slots, 1 policy worker ...",
           flush=True)
     t = time.perf_counter()
@@ -146,7 +153,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
         if args.demo:
             res = asyncio.run(run_demo(stack.gateway_address, args.episodes, args.suite, args.task, args.mode,
-                                       args.max_steps))
+                                       args.max_steps, args.model, args.execute_steps))
             report(res, [s.metrics_url for s in stack.services.values()])
         else:
             print("Ctrl-C to stop")
@@ -166,7 +173,8 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    res = asyncio.run(run_demo(args.gateway, args.episodes, args.suite, args.task, args.mode, args.max_steps))
+    res = asyncio.run(run_demo(args.gateway, args.episodes, args.suite, args.task, args.mode, args.max_steps,
+                               args.model, args.execute_steps))
     report(res, args.metrics or [])
     return 0
 
@@ -200,6 +208,9 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=("policy_step", "run_episode"), default="policy_step",
                    help="client-driven policy_step loop (default) or whole episodes inside the workers")
     p.add_argument("--max-steps", type=int, default=0, help="step budget per episode (default: the suite's)")
+    p.add_argument("--model", default=DEFAULT_POLICY, help=f"the policy (default {DEFAULT_POLICY})")
+    p.add_argument("--execute-steps", type=int, default=DEMO_EXECUTE_STEPS,
+                   help=f"actions of each chunk run per policy call (default {DEMO_EXECUTE_STEPS})")
 
 
 #: Subcommands that hand their arguments to another module's own parser (their --help is theirs).

@@ -12,10 +12,11 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import sys
 import time
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY, default_checkpoint
 from zetta.stats import wilson
 
 
@@ -65,18 +66,26 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
 
 def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_path: str, processes: int = 2,
              execute_steps: int = 4, env: dict | None = None, log=print) -> list[dict]:
+    """Run the episodes in ``processes`` workers, appending one JSON row each to ``out_path``.
+
+    Rows already in ``out_path`` for this model, suite, execute_steps and env count as done, so
+    an evaluation that was cut off continues where it stopped."""
     ctx = mp.get_context("spawn")
     jobs, results = ctx.Queue(), ctx.Queue()
     episodes = [(t, s, s % 50) for s in seeds for t in tasks]
+    done = done_rows(out_path, model, suite, execute_steps, env or {})
+    rows = [done[(t, s)] for t, s, _ in episodes if (t, s) in done]
+    if rows:
+        log(f"{suite}: {len(rows)} of {len(episodes)} episodes already in {out_path}")
     for e in episodes:
-        jobs.put(e)
+        if (e[0], e[1]) not in done:
+            jobs.put(e)
     for _ in range(processes):
         jobs.put(None)
     procs = [ctx.Process(target=_worker, args=(model, env or {}, suite, execute_steps, jobs, results), daemon=True)
              for _ in range(processes)]
     for p in procs:
         p.start()
-    rows = []
     Path(out_path).parent.mkdir(parents=True, exist_ok=True)
     with open(out_path, "a") as f:
         while len(rows) < len(episodes):
@@ -98,6 +107,21 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
         if p.is_alive():
             p.terminate()
     return rows
+
+
+def done_rows(path: str, model: str, suite: str, execute_steps: int, env: dict) -> dict[tuple[int, int], dict]:
+    """Valid rows of an earlier run with the same settings, by (task, seed)."""
+    if not Path(path).exists():
+        return {}
+    out = {}
+    for line in Path(path).read_text().splitlines():
+        if not line.strip():
+            continue
+        r = json.loads(line)
+        if ("error" not in r and r.get("model") == model and r.get("suite") == suite
+                and r.get("execute_steps") == execute_steps and r.get("env", {}) == env):
+            out[(r["task"], r["seed"])] = r
+    return out
 
 
 def table(rows: list[dict], task_names: dict[str, list[str]] | None = None) -> str:
@@ -142,6 +166,8 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", default="")
     p.add_argument("--out", default="out/eval/episodes.jsonl")
     p.add_argument("--report", default="", help="print the table of an existing episodes .jsonl and stop")
+    p.add_argument("--results", default="", help="also write the results file (e.g. docs/results/vla.json) "
+                   "and its page (docs/results/vla.md); VLA models only")
     a = p.parse_args(argv)
     if a.report:
         print(table([json.loads(line) for line in Path(a.report).read_text().splitlines() if line.strip()]))
@@ -154,9 +180,20 @@ def main(argv=None) -> int:
     tasks = [int(t) for t in a.tasks.split(",")]
     seeds = list(range(a.seed_offset, a.seed_offset + a.seeds))
     rows = []
+    start = time.monotonic()
     for suite in a.suites.split(","):
         rows += evaluate(a.model, suite, tasks, seeds, a.out, a.processes, a.execute_steps, env)
     print(table(rows))
+    if a.results:
+        from services.policy_worker.vla.policy import STATE_CHECKPOINT
+        from services.policy_worker.vla.results import main as render_page
+        from services.policy_worker.vla.results import write_results
+
+        checkpoint = a.checkpoint or str(default_checkpoint() if a.model == DEFAULT_POLICY else STATE_CHECKPOINT)
+        write_results(a.results, rows, model=a.model, checkpoint=checkpoint, execute_steps=a.execute_steps,
+                      command=["zetta", "eval-policy", *(argv if argv is not None else sys.argv[1:])],
+                      wall_s=time.monotonic() - start)
+        render_page([a.results])
     return 0
 
 

@@ -1,0 +1,162 @@
+"""The VLA's published success figures: a results file made by one command, a page made from it.
+
+``zetta eval-policy ... --results docs/results/vla.json`` writes what a reader needs to trust and
+rerun a number (the command, the commit, the checkpoint's hash, the seeds and init states, which
+init states the checkpoint was trained on, wall time, per-task Wilson intervals); ``python -m
+services.policy_worker.vla.results docs/results/vla.json`` renders docs/results/vla.md from it.
+The page is never edited by hand.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from zetta.stats import wilson
+
+
+def checkpoint_hash(path: str | Path) -> str:
+    """sha256 of the checkpoint's weights (model.pt): names exactly what was evaluated."""
+    return hashlib.sha256((Path(path) / "model.pt").read_bytes()).hexdigest()
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
+                             cwd=Path(__file__).resolve().parent)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=10, cwd=Path(__file__).resolve().parent).stdout.strip()
+        return out.stdout.strip() + ("+local-changes" if dirty else "") if out.returncode == 0 else "unknown"
+    except OSError:
+        return "unknown"
+
+
+def training_init_states(checkpoint: str | Path) -> dict[str, list[int]]:
+    """Init states per suite that the checkpoint's demonstrations came from (its data recipes)."""
+    doc = json.loads((Path(checkpoint) / "config.json").read_text())
+    out: dict[str, set[int]] = {}
+    for r in doc.get("data", {}).get("recipes", []):
+        recipe = r.get("recipe", r)
+        n = recipe.get("max_episodes") or recipe["seeds_per_task"] * len(recipe["tasks"])
+        per_task = -(-n // len(recipe["tasks"]))
+        seeds = range(recipe["seed_offset"], recipe["seed_offset"] + per_task)
+        out.setdefault(recipe["suite"], set()).update(s % 50 for s in seeds)
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def summarize(rows: list[dict]) -> dict[str, dict[str, Any]]:
+    """Per suite: per task successes/episodes with Wilson 95 %, and the suite's total."""
+    suites: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        if "error" in r:
+            continue
+        s = suites.setdefault(r["suite"], {"tasks": {}, "seeds": set(), "init_states": set()})
+        t = s["tasks"].setdefault(str(r["task"]), {"instruction": r.get("instruction", ""), "successes": 0,
+                                                   "episodes": 0})
+        t["successes"] += int(r["success"])
+        t["episodes"] += 1
+        s["seeds"].add(r["seed"])
+        s["init_states"].add(r["init_state_index"])
+    for s in suites.values():
+        for t in s["tasks"].values():
+            t["wilson95"] = [round(x, 4) for x in wilson(t["successes"], t["episodes"])]
+        k = sum(t["successes"] for t in s["tasks"].values())
+        n = sum(t["episodes"] for t in s["tasks"].values())
+        s["total"] = {"successes": k, "episodes": n, "wilson95": [round(x, 4) for x in wilson(k, n)]}
+        s["seeds"], s["init_states"] = sorted(s["seeds"]), sorted(s["init_states"])
+    return suites
+
+
+def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint: str | Path, execute_steps: int,
+                  command: list[str], wall_s: float) -> dict:
+    """Write the results file; refuses when an evaluated init state is one the checkpoint trained on."""
+    trained = training_init_states(checkpoint)
+    suites = summarize(rows)
+    for name, s in suites.items():
+        base = "_".join(name.split("_")[:2])  # libero_goal_swap -> libero_goal: same init states
+        overlap = sorted(set(s["init_states"]) & set(trained.get(base, [])))
+        if overlap:
+            raise ValueError(f"{name}: init states {overlap} were in the checkpoint's training data; "
+                             f"evaluate on others (--seed-offset)")
+    doc = {
+        "model": model, "checkpoint": str(checkpoint), "checkpoint_sha256": checkpoint_hash(checkpoint),
+        "commit": git_commit(), "command": " ".join(command), "execute_steps": execute_steps,
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": f"{platform.machine()}, "
+        f"{_cpus()} CPUs", "wall_s": round(wall_s, 1), "training_init_states": trained, "suites": suites,
+    }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(doc, indent=1) + "\n")
+    return doc
+
+
+def _cpus() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0))
+
+
+def _pct(lo_hi: list[float]) -> str:
+    return f"{lo_hi[0]:.0%}-{lo_hi[1]:.0%}"
+
+
+def render(doc: dict) -> str:
+    """docs/results/vla.md from a results file."""
+    lines = [
+        "# Zetta VLA: closed-loop success (generated)",
+        "",
+        f"Generated from `{doc.get('source', 'docs/results/vla.json')}` by "
+        "`python -m services.policy_worker.vla.results`; do not edit by hand.",
+        "",
+        f"- model `{doc['model']}`, checkpoint `{doc['checkpoint']}` (model.pt sha256 `{doc['checkpoint_sha256'][:16]}...`)",
+        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, wall time of the last invocation {doc['wall_s'] / 60:.0f} min",
+        f"- command: `{doc['command']}`",
+        f"- {doc['execute_steps']} actions of each 8-action chunk run per policy call",
+        f"- the checkpoint was trained on init states {_ranges(doc['training_init_states'].get('libero_goal', []))} "
+        "of libero_goal (original tasks only); every episode below starts from another",
+        "",
+        "| suite | successes / episodes | rate | Wilson 95% | seeds | init states |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, s in doc["suites"].items():
+        t = s["total"]
+        lines.append(f"| {name} | {t['successes']}/{t['episodes']} | {t['successes'] / max(t['episodes'], 1):.0%} | "
+                     f"{_pct(t['wilson95'])} | {_ranges(s['seeds'])} | {_ranges(s['init_states'])} |")
+    for name, s in doc["suites"].items():
+        lines += ["", f"## {name}", "", "| task | instruction | successes / episodes | rate | Wilson 95% |",
+                  "|---|---|---|---|---|"]
+        for task, t in sorted(s["tasks"].items(), key=lambda kv: int(kv[0])):
+            lines.append(f"| {task} | {t['instruction']} | {t['successes']}/{t['episodes']} | "
+                         f"{t['successes'] / max(t['episodes'], 1):.0%} | {_pct(t['wilson95'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def _ranges(values: list[int]) -> str:
+    """[0, 1, 2, 5] -> "0-2, 5"."""
+    out, start = [], None
+    for i, v in enumerate(values):
+        if start is None:
+            start = v
+        if i + 1 == len(values) or values[i + 1] != v + 1:
+            out.append(f"{start}-{v}" if v != start else f"{v}")
+            start = None
+    return ", ".join(out) or "none"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    src = Path(args[0] if args else "docs/results/vla.json")
+    doc = {**json.loads(src.read_text()), "source": str(src)}
+    out = src.with_suffix(".md")
+    out.write_text(render(doc))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
