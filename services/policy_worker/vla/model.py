@@ -10,7 +10,7 @@ velocity ``a - x0`` at ``x_t = t a + (1 - t) x0`` (x0 Gaussian); inference integ
 field from t = 0 to 1 in ``flow_steps`` Euler steps, conditioned on the prefix, producing an action
 chunk [chunk, 7] in normalized units. :meth:`ActionExpert.forward` starts from the given x0
 (zeros when none is given); the served policy samples x0 ~ N(0, I) by default, because the zero
-start averages the teacher's modes (see ``ZettaVLAPolicy`` and docs/vla-results.md).
+start averages the teacher's modes (see ``ZettaVLAPolicy``).
 
 The two stages share nothing but the prefix tensor, which is what lets the policy worker run them
 in two processes (see :mod:`services.policy_worker.vla.split`).

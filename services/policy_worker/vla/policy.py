@@ -67,8 +67,7 @@ class ZettaVLAPolicy:
         #: inputs (state and instruction), so the same observation gets the same draw whichever
         #: requests share its batch (and split or monolithic serving); "zero" starts every
         #: chunk at the noise mean. The mean start averages the modes where the teacher switches
-        #: (descend vs. re-align above an object) and hovers between them; sampling commits to one
-        #: (docs/vla-results.md).
+        #: (descend vs. re-align above an object) and hovers between them; sampling commits to one.
         self.noise = noise or os.environ.get("ZETTA_VLA_NOISE", "gaussian")
         if self.noise not in ("gaussian", "zero"):
             raise ValueError(f"ZETTA_VLA_NOISE must be 'gaussian' or 'zero', got {self.noise!r}")

@@ -1,0 +1,64 @@
+"""An image VLA served through the whole stack: the session renders its camera and the policy
+worker batches frames; a session rendering another size gets INVALID_ARGUMENT naming it.
+
+The checkpoint is a tiny one trained here for a few steps (the mechanics, not the success: the
+shipped checkpoint's success is measured by `zetta eval-policy`, docs/results/vla.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+
+from services.common.specs import render_config
+from tests.conftest import LIBERO_CREAM
+from zetta import Gateway
+from zetta.client import ZettaError
+
+torch = pytest.importorskip("torch")
+
+INSTRUCTION = "put the cream cheese in the bowl"
+SIZE = 32
+
+
+def tiny_image_checkpoint(tmp: Path) -> Path:
+    from services.policy_worker.vla.model import VLAConfig
+    from services.policy_worker.vla.train import TrainConfig, train
+
+    rng = np.random.default_rng(0)
+    demos = tmp / "demos.npz"
+    np.savez(demos, states=rng.standard_normal((8, 156)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (8, 7)).astype(np.float32), episode_lengths=np.array([8]),
+             instructions=np.array([INSTRUCTION]), images=rng.integers(0, 255, (4, SIZE, SIZE, 3), dtype=np.uint8),
+             image_steps=np.array([0, 2, 4, 6]))
+    out = tmp / "ck"
+    train([str(demos)], str(out), VLAConfig(image_size=SIZE, prefix_hidden=32, width=16, expert_hidden=16),
+          TrainConfig(steps=2, batch_size=4, warmup=1), log=lambda *_: None)
+    return out
+
+
+async def test_frames_flow_through_the_stack_and_a_wrong_size_is_refused(stack_factory, tmp_path) -> None:
+    from services.policy_worker.vla.policy import ZettaVLAPolicy
+
+    ck = tiny_image_checkpoint(tmp_path)
+    specs = ZettaVLAPolicy(ck, name="zetta-vla-image").input_specs()
+    stack = stack_factory(env_workers=1, slots=2, families=("libero",), models=("zetta-vla-image",), critic=False,
+                          extra_env={"ZETTA_VLA_CHECKPOINT": str(ck), "ZETTA_LOG_LEVEL": "INFO"})
+    async with Gateway(stack.gateway_address) as gw:
+        good = await gw.create_sessions(env_family="libero", n=1, env_config={**LIBERO_CREAM, **render_config(specs)})
+        wrong = await gw.create_sessions(env_family="libero", n=1,
+                                         env_config={**LIBERO_CREAM, **render_config(specs), "camera_size": SIZE + 16})
+        await good.reset(seed=0)
+        await wrong.reset(seed=0)
+        results = await good.policy_step(execute_steps=4)
+        assert results[0].episode_step == 4 and results[0].actions.shape == (4, 7)
+        with pytest.raises(ZettaError) as err:
+            await wrong.policy_step(execute_steps=4)
+        assert err.value.code == grpc.StatusCode.INVALID_ARGUMENT
+        assert wrong.ids[0] in str(err.value) and "agentview_image" in str(err.value)
+        again = await good.policy_step(execute_steps=4)  # the good session is not hurt by the bad one
+        assert again[0].episode_step == 8
+        await good.close()
+        await wrong.close()
