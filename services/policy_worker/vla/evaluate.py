@@ -69,9 +69,13 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
     """Run the episodes in ``processes`` workers, appending one JSON row each to ``out_path``.
 
     Rows already in ``out_path`` for this model, suite, execute_steps and env count as done, so
-    an evaluation that was cut off continues where it stopped."""
+    an evaluation that was cut off continues where it stopped. Raises when a worker process dies
+    with episodes left (killed for memory, say), instead of moving on with a partial suite."""
     ctx = mp.get_context("spawn")
-    jobs, results = ctx.Queue(), ctx.Queue()
+    results = ctx.Queue()
+    # Each process runs its own share of the tasks: a family keeps a warm env (with its renderer,
+    # about 0.5 GB) per task it has run, so every process running every task costs ~5 GB each.
+    queues = [ctx.Queue() for _ in range(processes)]
     episodes = [(t, s, s % 50) for s in seeds for t in tasks]
     done = done_rows(out_path, model, suite, execute_steps, env or {})
     rows = [done[(t, s)] for t, s, _ in episodes if (t, s) in done]
@@ -79,11 +83,11 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
         log(f"{suite}: {len(rows)} of {len(episodes)} episodes already in {out_path}")
     for e in episodes:
         if (e[0], e[1]) not in done:
-            jobs.put(e)
-    for _ in range(processes):
-        jobs.put(None)
-    procs = [ctx.Process(target=_worker, args=(model, env or {}, suite, execute_steps, jobs, results), daemon=True)
-             for _ in range(processes)]
+            queues[tasks.index(e[0]) % processes].put(e)
+    for q in queues:
+        q.put(None)
+    procs = [ctx.Process(target=_worker, args=(model, env or {}, suite, execute_steps, q, results), daemon=True)
+             for q in queues]
     for p in procs:
         p.start()
     Path(out_path).parent.mkdir(parents=True, exist_ok=True)
@@ -92,6 +96,10 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
             try:
                 r = results.get(timeout=10)
             except Exception:  # noqa: BLE001 - queue.Empty
+                dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
+                if dead:
+                    raise RuntimeError(f"{suite}: an evaluation process died (exit code {dead[0].exitcode}) with "
+                                       f"{len(episodes) - len(rows)} episodes left; rerun the same command to continue")
                 if not any(p.is_alive() for p in procs):
                     break
                 continue
