@@ -63,4 +63,4 @@ lint: setup
 	$(VENV)/bin/buf lint
 
 clean:
-	rm -rf $(VENV) clients/python/zetta/v1
+	rm -rf $(VENV) clients/python/zetta_wire/v1

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients" / "python"))
 
-from services.critic.package.loader import load_package  # noqa: E402
+from services.harness.package.loader import load_package  # noqa: E402
 from services.env_worker.families.base import ResetSpec, get_family  # noqa: E402
 from services.env_worker.harness_loop import SlotHarness  # noqa: E402
 from services.policy_worker.models.scripted import ScriptedPickPlacePolicy  # noqa: E402

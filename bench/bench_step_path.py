@@ -65,7 +65,7 @@ def _import_root(root: Path) -> None:
 
 
 def _slot(max_steps: int) -> tuple[Any, Any]:
-    from zetta.bench_sweep import env_config, quiet_fds
+    from bench.bench_sweep import env_config, quiet_fds
 
     with quiet_fds():
         from services.env_worker.families.base import get_family, select_gl_backend
@@ -82,12 +82,12 @@ def record(out: Path, episodes: int, max_steps: int) -> None:
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
     from services.env_worker.families.base import ResetSpec
     from services.policy_worker.models.base import load_model
-    from zetta.bench_sweep import DEFAULT_MODEL, quiet_fds
+    from bench.bench_sweep import DEFAULT_MODEL, quiet_fds
 
     family, slot = _slot(max_steps)
     with quiet_fds():
         policy = load_model(DEFAULT_MODEL)
-    from zetta.bench_sweep import random_replays
+    from bench.bench_sweep import random_replays
 
     actions = {"random": random_replays(1, max_steps, 1)[0][1]}
     for k in range(episodes):
@@ -194,7 +194,7 @@ def _chunk_matches_slot(slot: Any, bound: Any, recorded: Any, keys: list[str]) -
     from services.env_worker.families.base import ResetSpec
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import Episode
-    from zetta.codec import decode_observation
+    from zetta_wire.codec import decode_observation
 
     for key in keys:
         actions = recorded[key]

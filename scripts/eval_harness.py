@@ -28,10 +28,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
-from services.critic.package.loader import load_package  # noqa: E402
+from services.harness.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
-from zetta.local_stack import LocalStack  # noqa: E402
-from zetta.stats import wilson  # noqa: E402
+from services.ops.local_stack import LocalStack  # noqa: E402
+from zetta_wire.stats import wilson  # noqa: E402
 
 
 def _seeds(text: str) -> list[int]:

@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
-from zetta.stats import wilson  # noqa: E402 - after the path set-up above
+from zetta_wire.stats import wilson  # noqa: E402 - after the path set-up above
 
 
 _SLOTS: dict[str, object] = {}

@@ -35,7 +35,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 from prometheus_client.parser import text_string_to_metric_families  # noqa: E402
 
 from zetta import Gateway  # noqa: E402
-from zetta.local_stack import LocalStack  # noqa: E402
+from services.ops.local_stack import LocalStack  # noqa: E402
 
 TICKS = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")

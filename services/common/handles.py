@@ -1,7 +1,7 @@
 """Handle geometry and motions for articulation stages: a knob's lever, a drawer's bar.
 
 One module for the scripted oracle (services/policy_worker/models/oracle.py) and the harness
-library's articulation recoveries (services/critic/runtime/library/recoveries.py), like
+library's articulation recoveries (services/harness/runtime/library/recoveries.py), like
 services/common/rotations.py for orientations: both compute the same handle frame, the same finger
 push along a lever's tangent, the same front grasp and pull of a bar, and the same hook of a bar
 too low to grip from the front, from the observation tensors the env families publish for an

@@ -25,13 +25,13 @@ import numpy as np
 
 from services.common import grpc_errors as ge
 from services.env_worker import metrics
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected
-from services.critic.package.loader import load_files, unload
-from services.critic.package.model import LoadedPackage
-from services.critic.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
-from services.critic.runtime.orchestrator import POLICY
-from zetta.v1 import types_pb2
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected
+from services.harness.package.loader import load_files, unload
+from services.harness.package.model import LoadedPackage
+from services.harness.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
+from services.harness.runtime.orchestrator import POLICY
+from zetta_wire.v1 import types_pb2
 
 #: A registry reference that names one immutable version (cacheable for the worker's life).
 _EXACT_REF = re.compile(r"^[^@]+@\d+$")
@@ -104,7 +104,7 @@ class HarnessSource:
             hit = self._by_ref.get(ref)
         if hit is not None:
             return hit
-        from zetta.v1 import critic_pb2, critic_pb2_grpc
+        from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
         if self._stub is None:
             self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(grpc.insecure_channel(self.critic_address))

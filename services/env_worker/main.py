@@ -16,7 +16,7 @@ from services.env_worker.policy_client import PolicyClient
 from services.env_worker.rendering import gl_backend_choice, gl_renderer_string, select_gl_backend
 from services.env_worker.servicer import EnvWorkerServicer
 from services.env_worker.slots import SlotTable
-from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
+from zetta_wire.v1 import env_worker_pb2, env_worker_pb2_grpc
 
 log = logging.getLogger(__name__)
 

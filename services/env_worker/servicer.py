@@ -22,13 +22,13 @@ from google.protobuf import json_format
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.spec_codec import spec_to_wire
-from zetta.codec import TensorDecodeError, decode, encode, encode_observation
+from zetta_wire.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import harness_loop, metrics
 from services.env_worker.families.base import ResetError, ResetSpec, Slot, StepOutcome
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
 from services.env_worker.video import VideoError
-from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
+from zetta_wire.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
 
 log = logging.getLogger(__name__)
 

@@ -69,8 +69,8 @@ def _publish_dir(registry: str, path: Path) -> str:
     """Publish a package directory (a harness from another stack) and return its reference."""
     import grpc
 
-    from services.critic.package.format import read_tree
-    from zetta.v1 import critic_pb2, critic_pb2_grpc
+    from services.harness.package.format import read_tree
+    from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
     with grpc.insecure_channel(registry) as ch:
         files = {k: v for k, v in read_tree(path).items() if k != "manifest.json"}

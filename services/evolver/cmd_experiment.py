@@ -30,7 +30,7 @@ from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def task_list(text: str) -> tuple[str, ...]:

@@ -18,7 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from services.evolver.store import RolloutStore  # noqa: E402
-from zetta.stats import wilson  # noqa: E402
+from zetta_wire.stats import wilson  # noqa: E402
 
 
 def _rate(s: int, n: int) -> str:

@@ -10,7 +10,7 @@ from services.common import grpc_errors as ge
 from services.evolver.evolve import EvolveConfig
 from services.evolver.jobs import Job, JobError, JobManager, success_counts
 from services.evolver.store import RolloutStore
-from zetta.v1 import evolver_pb2, evolver_pb2_grpc
+from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 
 _STATE = {"pending": evolver_pb2.EVOLUTION_STATE_PENDING, "running": evolver_pb2.EVOLUTION_STATE_RUNNING,
           "succeeded": evolver_pb2.EVOLUTION_STATE_SUCCEEDED, "failed": evolver_pb2.EVOLUTION_STATE_FAILED,

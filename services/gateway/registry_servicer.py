@@ -9,7 +9,7 @@ from services.common.grpc_errors import error_boundary
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import Registry
 from services.gateway.workers import WorkerPool
-from zetta.v1 import registry_pb2, registry_pb2_grpc
+from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger(__name__)
 

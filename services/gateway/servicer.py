@@ -20,7 +20,7 @@ from google.protobuf import json_format
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
-from zetta.codec import TensorDecodeError, dtype_from_wire
+from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
@@ -34,7 +34,7 @@ from services.gateway.registry import (
     SessionRecord,
 )
 from services.gateway.workers import WorkerPool
-from zetta.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
+from zetta_wire.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

@@ -18,7 +18,7 @@ from services.common.grpc_errors import ServiceError, error_boundary
 from services.common.metrics import HOP_LATENCY
 from services.common.specs import SpecError
 from services.common.spec_codec import spec_to_wire
-from zetta.codec import TensorDecodeError, decode, encode
+from zetta_wire.codec import TensorDecodeError, decode, encode
 from services.policy_worker.models.base import ACTION_SPEC, PolicyModel
 from services.policy_worker.scheduler import (
     BatchScheduler,
@@ -27,7 +27,7 @@ from services.policy_worker.scheduler import (
     QueueFullError,
     SchedulerClosedError,
 )
-from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
 class PolicyWorkerServicer(policy_worker_pb2_grpc.PolicyWorkerServiceServicer):

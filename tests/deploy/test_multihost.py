@@ -228,7 +228,7 @@ def hosts() -> Iterator[Hosts]:
     try:
         net.create()
         a = net.ip(1)
-        from zetta.local_stack import find_redis_server
+        from services.ops.local_stack import find_redis_server
 
         hosts.start("redis", "a", [find_redis_server(), "--bind", "127.0.0.1", "--port", "6379", "--save", "",
                                    "--appendonly", "no", "--dir", str(hosts.workdir)])

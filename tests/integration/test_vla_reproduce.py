@@ -18,8 +18,8 @@ pytestmark = pytest.mark.slow
 def test_zetta_train_reproduces_shipped_success(tmp_path, monkeypatch) -> None:
     from services.policy_worker.vla.evaluate import evaluate
     from services.policy_worker.vla.policy import STATE_CHECKPOINT
-    from zetta.cli import main
-    from zetta.stats import wilson
+    from services.ops.cli import main
+    from zetta_wire.stats import wilson
 
     doc = json.loads((STATE_CHECKPOINT / "config.json").read_text())
     pipe = doc["pipeline"]

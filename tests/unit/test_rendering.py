@@ -295,9 +295,9 @@ async def test_worker_renders_at_chunk_end_and_writes_video(tmp_path: Path) -> N
     from services.env_worker.policy_client import PolicyClient
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import SlotTable
-    from zetta.codec import decode_observation, encode
-    from zetta.v1 import env_worker_pb2 as pb
-    from zetta.v1 import env_worker_pb2_grpc, types_pb2
+    from zetta_wire.codec import decode_observation, encode
+    from zetta_wire.v1 import env_worker_pb2 as pb
+    from zetta_wire.v1 import env_worker_pb2_grpc, types_pb2
 
     table = SlotTable(2, ["robosuite"])
     servicer = EnvWorkerServicer(table, PolicyClient([], 1000), video_dir=str(tmp_path))

@@ -23,8 +23,8 @@ import grpc
 import numpy as np
 from google.protobuf import struct_pb2
 
-from zetta.codec import decode, decode_observation, encode
-from zetta.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
+from zetta_wire.codec import decode, decode_observation, encode
+from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
 
 _CHANNEL_OPTIONS = [
     ("grpc.max_send_message_length", 256 * 1024 * 1024),

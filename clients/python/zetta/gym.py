@@ -27,9 +27,9 @@ import numpy as np
 from gymnasium import spaces
 
 from zetta.client import ResetResult, StepResult
-from zetta.codec import dtype_from_wire
+from zetta_wire.codec import dtype_from_wire
 from zetta.sync import SyncGateway
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 #: ``reset(options=...)`` keys and the SessionGroup.reset arguments they set.
 RESET_OPTIONS = ("task", "init_state_index", "instruction", "record_video", "harness", "harness_dir")
@@ -174,4 +174,4 @@ class ZettaEnv(SchemaEnv):
 
 gymnasium.register(id="zetta/Session-v0", entry_point="zetta.gym:ZettaEnv")
 # The in-process env needs this repository's services package (resolved only by gymnasium.make).
-gymnasium.register(id="zetta/Local-v0", entry_point="services.env_worker.families.gym_env:LocalFamilyEnv")
+gymnasium.register(id="zetta/Local-v0", entry_point="services.ops.gym_env:LocalFamilyEnv")

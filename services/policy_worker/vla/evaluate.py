@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results) -> None:

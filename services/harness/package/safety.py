@@ -13,7 +13,7 @@ from __future__ import annotations
 import ast
 import re
 
-from services.critic.package.errors import PackageRejected, Problem
+from services.harness.package.errors import PackageRejected, Problem
 
 #: Modules harness code may import, exactly by these names.
 ALLOWED_IMPORTS: frozenset[str] = frozenset(
@@ -27,11 +27,11 @@ ALLOWED_IMPORTS: frozenset[str] = frozenset(
         "collections.abc",
         "functools",
         "itertools",
-        "services.critic.runtime.api",
+        "services.harness.runtime.api",
     }
 )
 #: Packages harness code may import together with every submodule.
-ALLOWED_PACKAGES: frozenset[str] = frozenset({"services.critic.runtime.library"})
+ALLOWED_PACKAGES: frozenset[str] = frozenset({"services.harness.runtime.library"})
 #: Built-in names that run code, touch files, reflect on objects or wait on a terminal; never referenced.
 FORBIDDEN_NAMES: frozenset[str] = frozenset(
     {

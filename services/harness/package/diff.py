@@ -13,7 +13,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from services.critic.package import format as fmt
+from services.harness.package import format as fmt
 
 
 @dataclass(frozen=True)

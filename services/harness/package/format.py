@@ -23,7 +23,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from services.critic.package.errors import PackageRejected, Problem, reject
+from services.harness.package.errors import PackageRejected, Problem, reject
 
 SKILL = "SKILL.md"
 MANIFEST = "manifest.json"

@@ -18,7 +18,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from services.critic.package import format as fmt
+from services.harness.package import format as fmt
 
 log = logging.getLogger(__name__)
 

@@ -32,14 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from services.critic.package.model import LoadedPackage
-from services.critic.runtime.api import Frame, Proposal, Window
-from services.critic.runtime.budget import CallBudget, guarded_call
-from services.critic.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
-from services.critic.runtime.library.recoveries import DONE, FAILED, Chain
-from services.critic.runtime.library.schema import ParamError
-from services.critic.runtime.orchestrator import POLICY, Orchestrator, Rule
-from services.critic.runtime.reentry import ReentryContract
+from services.harness.package.model import LoadedPackage
+from services.harness.runtime.api import Frame, Proposal, Window
+from services.harness.runtime.budget import CallBudget, guarded_call
+from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
+from services.harness.runtime.library.recoveries import DONE, FAILED, Chain
+from services.harness.runtime.library.schema import ParamError
+from services.harness.runtime.orchestrator import POLICY, Orchestrator, Rule
+from services.harness.runtime.reentry import ReentryContract
 
 _HOLD = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 

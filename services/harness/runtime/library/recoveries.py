@@ -3,7 +3,7 @@
 A recovery is built fresh for each intervention from its parameters, started on the window that
 triggered it, and asked for one action per env step until it returns ``None`` (finished; then
 ``status`` says ``done`` or ``failed``). The runtime, not the recovery, decides when control goes
-back to the policy (the re-entry contract, services/critic/runtime/reentry.py). All motion targets
+back to the policy (the re-entry contract, services/harness/runtime/reentry.py). All motion targets
 are recomputed every step from the live object and target boxes, so a recovery follows an object
 that moves and never replays a recorded trajectory.
 """
@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import handles
-from services.critic.runtime.api import Window
-from services.critic.runtime.orchestrator import first_missing, milestone_kind
+from services.harness.runtime.api import Window
+from services.harness.runtime.orchestrator import first_missing, milestone_kind
 from services.common.rotations import hand_down
-from services.critic.runtime.library import tools as t
-from services.critic.runtime.library.schema import Param, RecoverySpec
+from services.harness.runtime.library import tools as t
+from services.harness.runtime.library.schema import Param, RecoverySpec
 
 RUNNING, DONE, FAILED = "running", "done", "failed"
 

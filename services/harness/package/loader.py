@@ -1,6 +1,6 @@
 """Loads a harness package: layout, SKILL.md, plans, params, then the checked tool modules.
 
-Every Python file passes the static checks (services/critic/package/safety.py) before any of
+Every Python file passes the static checks (services/harness/package/safety.py) before any of
 them is imported; a package with one bad file is rejected whole, with every reason. Accepted
 modules are imported under a private module name made of the content hash and a load counter,
 so two versions of a package (or two loads of the same one) never share module state. Their
@@ -21,10 +21,10 @@ from pathlib import Path
 from types import MappingProxyType, ModuleType
 from typing import Any
 
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected, Problem, reject
-from services.critic.package.model import LoadedPackage
-from services.critic.package.safety import FORBIDDEN_NAMES, check_source, is_allowed_import
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected, Problem, reject
+from services.harness.package.model import LoadedPackage
+from services.harness.package.safety import FORBIDDEN_NAMES, check_source, is_allowed_import
 
 _load_counter = itertools.count(1)
 

@@ -22,8 +22,8 @@ import warnings
 from collections.abc import Mapping
 from multiprocessing.connection import Connection
 
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected, Problem
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected, Problem
 
 
 def _preload() -> list[str]:
@@ -31,7 +31,7 @@ def _preload() -> list[str]:
     multiprocessing re-runs that module in every child, which is then a cache hit, not an import."""
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)
     main = [spec.name] if spec is not None and spec.name else []
-    return [__name__, "services.critic.runtime.engine", *main]
+    return [__name__, "services.harness.runtime.engine", *main]
 
 
 # Re-running a preloaded main module makes runpy warn once per child; the re-run is intended.
@@ -50,8 +50,8 @@ def start_fork_server() -> None:
 
 def _child(conn: Connection, files: dict[str, bytes], max_bytes: int) -> None:
     """Child side: load, build a runtime, send back the problems (empty when it all worked)."""
-    from services.critic.package.loader import load_files
-    from services.critic.runtime.engine import HarnessError, HarnessRuntime
+    from services.harness.package.loader import load_files
+    from services.harness.runtime.engine import HarnessError, HarnessRuntime
 
     problems: list[tuple[str, int, str]] = []
     try:

@@ -14,9 +14,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from services.critic.runtime.api import Window
-from services.critic.runtime.library import tools as t
-from services.critic.runtime.library.schema import Param, PredicateSpec
+from services.harness.runtime.api import Window
+from services.harness.runtime.library import tools as t
+from services.harness.runtime.library.schema import Param, PredicateSpec
 
 Details = Mapping[str, float] | None
 

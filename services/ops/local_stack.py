@@ -169,7 +169,7 @@ class LocalStack:
 
     def _base_env(self) -> dict[str, str]:
         env = dict(os.environ)
-        root = Path(__file__).resolve().parents[3]
+        root = Path(__file__).resolve().parents[2]
         env["PYTHONPATH"] = os.pathsep.join([str(root), str(root / "clients" / "python"), env.get("PYTHONPATH", "")])
         env.setdefault("ZETTA_LOG_LEVEL", "INFO")
         env["ZETTA_BIND_HOST"] = HOST
@@ -273,7 +273,7 @@ class LocalStack:
 
     def wait_workers(self, n: int, timeout: float = 60) -> None:
         """Block until ``n`` env workers are alive in the registry."""
-        from zetta.v1 import gateway_pb2, gateway_pb2_grpc
+        from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc
 
         deadline = time.monotonic() + timeout
         with grpc.insecure_channel(self.gateway_address) as channel:

@@ -14,9 +14,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from services.critic.runtime.api import Window
-from services.critic.runtime.library.predicates import STABILITY_PARAMS, contact_stability
-from services.critic.runtime.library.schema import resolve
+from services.harness.runtime.api import Window
+from services.harness.runtime.library.predicates import STABILITY_PARAMS, contact_stability
+from services.harness.runtime.library.schema import resolve
 
 
 @dataclass

@@ -643,7 +643,7 @@ def histogram_totals(url: str, model: str) -> dict[str, tuple[float, float]]:
     """(sum, count) of each of :data:`POLICY_HISTOGRAMS` of the policy worker for ``model``."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    from zetta.hops import scrape
+    from services.ops.hops import scrape
 
     out = {name: (0.0, 0.0) for name in POLICY_HISTOGRAMS}
     for family in text_string_to_metric_families(scrape(url)):
@@ -665,7 +665,7 @@ def env_steps(urls: Sequence[str]) -> int:
     duration histogram, observed after every step (``zetta_env_steps_total`` grows a chunk at a time)."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    from zetta.hops import scrape
+    from services.ops.hops import scrape
 
     total = 0.0
     for url in urls:
@@ -791,7 +791,7 @@ class Profiler:
     def stop(self) -> Path:
         import signal
 
-        from zetta import bench_report
+        from bench import bench_report
 
         for _, spy in self._spies:
             spy.send_signal(signal.SIGINT)
@@ -808,7 +808,7 @@ def run_stack(spec: StackSpec, concurrency: Sequence[int], episodes: int, task: 
               pairing: Pairing | None = None) -> list[Row]:
     """Start a stack, run every concurrency point on it, stop it; a point that fails ends the stack's
     sweep, is added to ``failures`` and the points before it are kept."""
-    from zetta.local_stack import LocalStack
+    from services.ops.local_stack import LocalStack
 
     workdir = Path(tempfile.mkdtemp(prefix="zetta-bench-"))
     env = {"ZETTA_LOG_LEVEL": "WARNING", **spec.extra_env}
@@ -939,7 +939,7 @@ async def _gateway_hop(sessions: Any, calls: int = 200) -> dict[str, float]:
 
 @dataclass
 class Results:
-    """Everything one invocation measured (written as JSON and rendered by zetta.bench_report)."""
+    """Everything one invocation measured (written as JSON and rendered by bench.bench_report)."""
 
     args: dict[str, Any]
     machine: str
@@ -1112,7 +1112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("usage: zetta bench rollout [options]   (zetta bench rollout --help)", file=sys.stderr)
         return 2
     args = parse_args(argv[1:])
-    from zetta import bench_report
+    from bench import bench_report
 
     t0 = time.perf_counter()
 
@@ -1143,7 +1143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({**res.to_json(), "command": command}, indent=1, default=float))
     if args.write_docs:
-        docs = Path(args.docs_dir) if args.docs_dir else Path(__file__).resolve().parents[3] / "docs"
+        docs = Path(args.docs_dir) if args.docs_dir else Path(__file__).resolve().parents[1] / "docs"
         for path in bench_report.write_docs(res, docs, command):
             print(f"wrote {path}")
     return 0

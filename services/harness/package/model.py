@@ -1,6 +1,6 @@
 """A harness package once loaded and checked: what the runtime builds a harness from.
 
-The on-disk format is documented in docs/harness.md. Loading (services/critic/package/loader.py)
+The on-disk format is documented in docs/harness.md. Loading (services/harness/package/loader.py)
 checks every Python file before importing it; this dataclass only ever holds checked content.
 """
 

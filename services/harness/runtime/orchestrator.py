@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from services.critic.runtime.api import Proposal
+from services.harness.runtime.api import Proposal
 
 POLICY = "policy"
 

@@ -18,9 +18,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from services.critic.runtime.library.predicates import PREDICATES
-from services.critic.runtime.library.recoveries import RECOVERIES
-from services.critic.runtime.library.schema import resolve
+from services.harness.runtime.library.predicates import PREDICATES
+from services.harness.runtime.library.recoveries import RECOVERIES
+from services.harness.runtime.library.schema import resolve
 
 #: Milestone kinds of a pick-and-place stage (services/env_worker/milestones.py): acquiring the
 #: object, then placing it. A drop on the way leaves the first missing milestone at a placing kind

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 _TO_WIRE: dict[np.dtype, int] = {
     np.dtype("float32"): types_pb2.DTYPE_FLOAT32,

@@ -24,10 +24,10 @@ from typing import Any
 import grpc
 import numpy as np
 
-from services.critic.package.format import read_tree
+from services.harness.package.format import read_tree
 from zetta.client import ZettaError
-from zetta.codec import decode, encode, encode_observation
-from zetta.v1 import critic_pb2, critic_pb2_grpc, types_pb2
+from zetta_wire.codec import decode, encode, encode_observation
+from zetta_wire.v1 import critic_pb2, critic_pb2_grpc, types_pb2
 
 DEFAULT_ADDRESS = "127.0.0.1:50081"
 _CHANNEL_OPTIONS = [("grpc.max_send_message_length", 256 * 1024 * 1024), ("grpc.max_receive_message_length", 256 * 1024 * 1024)]

@@ -31,9 +31,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from zetta.client import Gateway, SessionGroup
-from zetta.hops import histograms, scrape
-from zetta.stats import wilson
-from zetta.v1 import types_pb2
+from services.ops.hops import histograms, scrape
+from zetta_wire.stats import wilson
+from zetta_wire.v1 import types_pb2
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 
@@ -134,7 +134,7 @@ def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from zetta.local_stack import LocalStack
+    from services.ops.local_stack import LocalStack
 
     stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1)
     print(f"starting redis, gateway, {args.env_workers} env workers x {args.slots} slots, 1 policy worker ...",
@@ -207,9 +207,9 @@ _FORWARDED = {
     "train": "services.policy_worker.vla.train",
     "eval-policy": "services.policy_worker.vla.evaluate",
     # Versioned harness packages in the registry (docs/harness.md).
-    "harness": "zetta.harness",
+    "harness": "services.ops.harness",
     # The throughput sweep against its baselines and the machine's limit (docs/throughput.md).
-    "bench": "zetta.bench_sweep",
+    "bench": "bench.bench_sweep",
     # The evolution loops and zero-shot transfer of evolved harnesses (docs/evolution.md).
     "evolve": "services.evolver.cmd_evolve",
     "eval": "services.evolver.cmd_eval",
