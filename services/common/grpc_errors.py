@@ -10,6 +10,8 @@ from collections.abc import Sequence
 
 import grpc
 
+from zetta_wire.errors import error_metadata, parse_error_metadata
+
 
 class ServiceError(Exception):
     """An error with its gRPC status code and the sessions it concerns."""
@@ -29,12 +31,7 @@ class ServiceError(Exception):
 
     def trailing_metadata(self) -> tuple[tuple[str, str], ...]:
         """Machine-readable details: failed sessions and a retry hint."""
-        md: list[tuple[str, str]] = []
-        if self.session_ids:
-            md.append(("zetta-failed-sessions", ",".join(self.session_ids)))
-        if self.retry_after_ms is not None:
-            md.append(("retry-after-ms", str(self.retry_after_ms)))
-        return tuple(md)
+        return error_metadata(self.session_ids, self.retry_after_ms)
 
     async def abort(self, context: grpc.aio.ServicerContext) -> None:
         """End the call with this error."""
@@ -69,14 +66,8 @@ def unavailable(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
 
 def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
     """Re-raise a downstream error with context, keeping its code and failed sessions."""
-    sessions: list[str] = []
-    retry: int | None = None
-    for key, value in err.trailing_metadata() or ():
-        if key == "zetta-failed-sessions":
-            sessions = [s for s in value.split(",") if s]
-        elif key == "retry-after-ms":
-            retry = int(value)
-    return ServiceError(err.code(), f"{what}: {err.details()}", sessions, retry)
+    details = parse_error_metadata(err.trailing_metadata())
+    return ServiceError(err.code(), f"{what}: {err.details()}", details.session_ids, details.retry_after_ms)
 
 
 def error_boundary(method):  # type: ignore[no-untyped-def]

@@ -32,9 +32,9 @@ from services.harness.package.errors import PackageRejected
 from services.harness.package.loader import check_files, load_files, unload
 from services.harness.package.model import LoadedPackage
 from services.harness.package.probe import probe_import
+from services.harness.report_proto import report_to_proto
 from services.critic.registry import HarnessRegistry, Resolved, parse_json
 from services.harness.runtime.engine import HarnessError, HarnessRuntime
-from services.env_worker.harness_loop import report_to_proto
 from zetta_wire.codec import TensorDecodeError, decode, decode_observation, encode
 from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 

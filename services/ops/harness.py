@@ -26,11 +26,11 @@ import numpy as np
 
 from services.harness.package.format import read_tree
 from zetta.client import ZettaError
+from zetta_wire.channel import CHANNEL_OPTIONS
 from zetta_wire.codec import decode, encode, encode_observation
 from zetta_wire.v1 import critic_pb2, critic_pb2_grpc, types_pb2
 
 DEFAULT_ADDRESS = "127.0.0.1:50081"
-_CHANNEL_OPTIONS = [("grpc.max_send_message_length", 256 * 1024 * 1024), ("grpc.max_receive_message_length", 256 * 1024 * 1024)]
 
 
 def default_address() -> str:
@@ -91,7 +91,7 @@ class HarnessRegistry:
     def __init__(self, address: str | None = None, timeout: float = 120.0) -> None:
         self.address = address or default_address()
         self.timeout = timeout
-        self._channel = grpc.insecure_channel(self.address, options=_CHANNEL_OPTIONS)
+        self._channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
         self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(self._channel)
 
     def __enter__(self) -> "HarnessRegistry":
@@ -183,7 +183,7 @@ class Evaluation:
     Use ``async with evaluate(...) as ev`` so the stream is closed when the episode ends."""
 
     def __init__(self, address: str, harness: str, instruction: str, milestone_names: Sequence[str], task: str) -> None:
-        self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
         self._call = critic_pb2_grpc.CriticServiceStub(self._channel).Evaluate()
         self._start = critic_pb2.EvaluateStart(
             harness=harness, task=task, instruction=instruction, milestone_names=list(milestone_names)

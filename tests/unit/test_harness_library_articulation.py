@@ -14,7 +14,7 @@ from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemo
 from services.harness.runtime.library.playbooks import ARTICULATION_STAGES, PLAYBOOKS, check_playbooks, serving
 from services.harness.runtime.library.recoveries import DONE, FAILED
 from services.harness.runtime.orchestrator import milestone_kind
-from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
+from services.common.milestone_kinds import STAGE_KINDS, TEMPLATE_NAMES
 from services.evolver.diagnose import Case, repair_spec
 from services.evolver.draft import HarnessDraft
 from services.evolver.eod import t_eod

@@ -23,15 +23,10 @@ import grpc
 import numpy as np
 from google.protobuf import struct_pb2
 
+from zetta_wire.channel import CHANNEL_OPTIONS
 from zetta_wire.codec import decode, decode_observation, encode
+from zetta_wire.errors import parse_error_metadata
 from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
-
-_CHANNEL_OPTIONS = [
-    ("grpc.max_send_message_length", 256 * 1024 * 1024),
-    ("grpc.max_receive_message_length", 256 * 1024 * 1024),
-    ("grpc.keepalive_time_ms", 20_000),
-    ("grpc.keepalive_permit_without_calls", 1),
-]
 
 
 class ZettaError(Exception):
@@ -48,14 +43,8 @@ class ZettaError(Exception):
     @classmethod
     def from_rpc(cls, err: grpc.aio.AioRpcError) -> "ZettaError":
         """Lift the trailing metadata the gateway sets into attributes."""
-        sessions: list[str] = []
-        retry: int | None = None
-        for key, value in err.trailing_metadata() or ():
-            if key == "zetta-failed-sessions":
-                sessions = [s for s in value.split(",") if s]
-            elif key == "retry-after-ms":
-                retry = int(value)
-        return cls(err.code(), err.details() or "", sessions, retry)
+        details = parse_error_metadata(err.trailing_metadata())
+        return cls(err.code(), err.details() or "", details.session_ids, details.retry_after_ms)
 
 
 @dataclass
@@ -238,7 +227,7 @@ class Gateway:
 
     def __init__(self, address: str) -> None:
         self.address = address
-        self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
         self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
         self._batcher = _Batcher(self)
 

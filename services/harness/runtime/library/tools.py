@@ -18,7 +18,7 @@ import numpy as np
 from services.common import handles
 from services.common.rotations import quat_to_mat, rotvec
 from services.harness.runtime.api import Frame
-from services.env_worker.milestones import STAGE_KINDS
+from services.common.milestone_kinds import STAGE_KINDS
 
 OPEN, CLOSE, KEEP = -1.0, 1.0, 0.0
 #: The hand pointing down with the fingers closing along world y (the default Panda pose).
