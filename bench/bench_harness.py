@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients" / "python"))
 
 from services.harness.package.loader import load_package  # noqa: E402
-from services.env_worker.families.base import ResetSpec, get_family  # noqa: E402
+from services.env_worker.families import ResetSpec, get_family  # noqa: E402
 from services.env_worker.harness_loop import SlotHarness  # noqa: E402
 from services.policy_worker.models.scripted import ScriptedPickPlacePolicy  # noqa: E402
 

@@ -36,6 +36,7 @@ milestones are those of the slot path that observes every step.
 from __future__ import annotations
 
 import argparse
+import importlib
 import inspect
 import json
 import os
@@ -51,7 +52,8 @@ from typing import Any
 
 import numpy as np
 
-from trees import export  # this folder (bench/) is the script's first import path
+from bench_sweep import DEFAULT_MODEL, env_config, quiet_fds, random_replays  # this folder (bench/)
+from trees import export  # is the script's first import path
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -64,30 +66,44 @@ def _import_root(root: Path) -> None:
     sys.path[:0] = [str(root), str(root / "clients" / "python")]
 
 
-def _slot(max_steps: int) -> tuple[Any, Any]:
-    from bench.bench_sweep import env_config, quiet_fds
+def _families() -> Any:
+    """The env families' API of the tree imported: their public module, or ``families.base`` in a
+    revision from before the API had one (measured with ``--against``)."""
+    import services.env_worker.families as api
 
+    if hasattr(api, "ResetSpec"):
+        return api
+    return importlib.import_module("services.env_worker.families.base")
+
+
+def _decode_observation() -> Callable[..., Any]:
+    """The codec's observation decoder: ``zetta.codec`` in older revisions, ``zetta_wire`` since."""
+    try:
+        return importlib.import_module("zetta.codec").decode_observation
+    except ImportError:
+        return importlib.import_module("zetta_wire.codec").decode_observation
+
+
+def _slot(max_steps: int) -> tuple[Any, Any]:
     with quiet_fds():
-        from services.env_worker.families.base import get_family, select_gl_backend
         from services.env_worker.fast_step import warm_up
 
-        select_gl_backend()
+        families = _families()
+        families.select_gl_backend()
         warm_up()
-        family = get_family("libero")(env_config(TASK, max_steps))
+        family = families.get_family("libero")(env_config(TASK, max_steps))
         return family, family.init()
 
 
 def record(out: Path, episodes: int, max_steps: int) -> None:
     """Run the shipped policy in-process on episode keys (seed 0, init state k) and save its actions."""
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
     from services.policy_worker.models.base import load_model
-    from bench.bench_sweep import DEFAULT_MODEL, quiet_fds
 
     family, slot = _slot(max_steps)
     with quiet_fds():
         policy = load_model(DEFAULT_MODEL)
-    from bench.bench_sweep import random_replays
 
     actions = {"random": random_replays(1, max_steps, 1)[0][1]}
     for k in range(episodes):
@@ -115,7 +131,7 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
     of a slot step, timed by wrappers that add a little of their own)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
     from services.env_worker.fast_step import make_stepper
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import BoundSlot, Episode
@@ -172,7 +188,7 @@ def _digest(slot: Any, recorded: Any, keys: list[str]) -> str:
     trees that agree on it behave the same on these steps, bit for bit."""
     import hashlib
 
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
 
     h = hashlib.blake2b(digest_size=16)
     for key in keys:
@@ -191,10 +207,10 @@ def _chunk_matches_slot(slot: Any, bound: Any, recorded: Any, keys: list[str]) -
     """Whether the env worker's chunk path (observation built only after a chunk's last action)
     returns the observation, reward, success, info and milestones of the path that observes every
     step, on every chunk of the replayed episodes."""
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import Episode
-    from zetta_wire.codec import decode_observation
+    decode_observation = _decode_observation()
 
     for key in keys:
         actions = recorded[key]
@@ -220,8 +236,8 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
     """Thread CPU microseconds per step of the named parts of a slot step (wrapped functions), the
     observation built after every chunk's last action as the env worker does."""
     from services.env_worker import signals
-    from services.env_worker.families import base, libero, task_state
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import episode, libero, task_state
+    ResetSpec = _families().ResetSpec
     from services.env_worker.fast_step import FastStepper
     from services.env_worker.milestones import MilestoneTracker
 
@@ -242,7 +258,7 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
 
     env_cls = type(slot._env)
     for owner, name, label in (
-        (base.EpisodeSlot, "step", "slot.step"),
+        (episode.EpisodeSlot, "step", "slot.step"),
         (FastStepper, "step", "  FastStepper.step"),
         (FastStepper, "_compiled_substeps", "    substeps (kernel, observables)"),
         (env_cls, "_post_action", "    _post_action (reward)"),
@@ -259,7 +275,7 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
         (task_state.TaskState, "_stage_tensors", "      _stage_tensors"),
         (task_state.TaskState, "_signals", "      _signals"),
         (env_cls, "_check_success", "  _check_success (every call)"),
-        (base, "normalize_observation", "  normalize_observation"),
+        (episode, "normalize_observation", "  normalize_observation"),
     ):
         if hasattr(owner, name):
             wrap(owner, name, label)

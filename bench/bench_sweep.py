@@ -368,7 +368,7 @@ def naive_episode(policy: Any, index: int, task: str, max_steps: int, fast_step:
     the episode (with the seconds the env build took) and the actions it executed, which the
     ``limit`` rows replay. bench/bench_rollout.py runs its naive baseline through this too.
     """
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
 
     start = time.perf_counter()
     family = get_family("libero")(env_config(task, max_steps, fast_step))  # a new group: nothing cached
@@ -456,7 +456,7 @@ def limit_child(kind: str, task: str, max_steps: int, seconds: Any, seed: int, b
 
     with quiet_fds():
         from services.env_worker.families import settled
-        from services.env_worker.families.base import ResetSpec, get_family, select_gl_backend
+        from services.env_worker.families import ResetSpec, get_family, select_gl_backend
         from services.env_worker.fast_step import make_stepper, warm_up
 
         select_gl_backend()
@@ -590,7 +590,7 @@ def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: s
 
 def sample_observation(task: str, max_steps: int) -> tuple[dict[str, np.ndarray], str]:
     """One canonical first observation of ``task`` and its instruction, to time the policy on."""
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
 
     with quiet_fds():
         family = get_family("libero")(env_config(task, max_steps))

@@ -37,7 +37,7 @@ def run_one(job: tuple[str, int, int, int]) -> dict:
     suite, task, init, seed = job
     import numpy as np
 
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.oracle import OraclePolicy
 
     slot = _SLOTS.get(suite)

@@ -39,7 +39,7 @@ Reflections
     Off changes what the policy sees, so the default stays on.
 
 This module imports MuJoCo only inside the renderer classes: importing it (as
-``families/base.py`` does) loads no simulator.
+the families' API does) loads no simulator.
 """
 
 from __future__ import annotations

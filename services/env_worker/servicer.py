@@ -24,7 +24,7 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.spec_codec import spec_to_wire
 from zetta_wire.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import harness_loop, metrics
-from services.env_worker.families.base import ResetError, ResetSpec, Slot, StepOutcome
+from services.env_worker.families import ResetError, ResetSpec, Slot, StepOutcome
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
 from services.env_worker.video import VideoError

@@ -20,7 +20,6 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from services.evolver.cmd_common import llm_from_env, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer

@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.base import ResetSpec, get_family
+from services.env_worker.families import ResetSpec, get_family
 from zetta.gym import SchemaEnv, check_render_mode, space_for
 
 #: ``reset(options=...)`` keys the in-process env takes (videos go to ``video_path``).

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ResetSpec, get_family
+from services.env_worker.families import ResetSpec, get_family
 
 CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 TOLERANCE = 1e-6

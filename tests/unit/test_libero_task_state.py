@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ConfigError, ResetSpec, canonical_config_key, get_family
+from services.env_worker.families import ConfigError, ResetSpec, canonical_config_key, get_family
 from services.common.milestone_kinds import MAX_MILESTONES, STAGE_KINDS
 from services.policy_worker.models.oracle import OraclePolicy
 

@@ -69,7 +69,7 @@ class DataRecipe:
 
 def _worker(recipe: dict, jobs, results) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
     cfg = {"suite": recipe["suite"]}

@@ -24,7 +24,7 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     import torch
 
     torch.set_num_threads(1)
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
     policy = load_model(model)
