@@ -1,7 +1,8 @@
-"""The milestone vocabulary: stage kinds, milestone templates and the fixed tensor sizes.
+"""The vocabulary of the task tensors: stage kinds, milestone templates and the fixed sizes.
 
-The env worker derives milestones from these templates, the harness and the oracle read the
-one-hot tensors they index; all of them import the vocabulary from here so they cannot disagree.
+The env worker derives milestones from these templates and fills the task tensors; the harness and
+the oracle read the one-hot tensors they index. All of them import the vocabulary from here so
+they cannot disagree.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ STAGE_KINDS: tuple[str, ...] = ("on", "in", "open", "close", "turnon", "turnoff"
 #: Milestone vectors in observations have this fixed length (zero-padded) so the schema does not
 #: depend on the task; LIBERO's longest goal (3 predicates of pick-and-place) needs 18.
 MAX_MILESTONES = 24
+#: Rows of ``task_obstacle_bbox``: boxes of the obstacles near the stage's object and target (zero-padded).
+OBSTACLE_SLOTS = 32
 
 #: Milestone templates per template name: (kind, name pattern). ``{p}`` is the predicate name.
 TEMPLATES: dict[str, tuple[tuple[str, str], ...]] = {
@@ -45,4 +48,4 @@ TEMPLATES: dict[str, tuple[tuple[str, str], ...]] = {
 #: Template names in the fixed order of the ``task_template`` one-hot tensor.
 TEMPLATE_NAMES: tuple[str, ...] = tuple(TEMPLATES)
 
-__all__ = ["MAX_MILESTONES", "STAGE_KINDS", "TEMPLATES", "TEMPLATE_NAMES"]
+__all__ = ["MAX_MILESTONES", "OBSTACLE_SLOTS", "STAGE_KINDS", "TEMPLATES", "TEMPLATE_NAMES"]

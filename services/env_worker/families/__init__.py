@@ -17,11 +17,9 @@ from services.env_worker.families.contract import (
     UnknownFamilyError,
 )
 from services.env_worker.families.registry import canonical_config_key, family_names, get_family, register_family
-from services.env_worker.families.schema import OBSTACLE_SLOTS
 from services.env_worker.rendering import select_gl_backend
 
 __all__ = [
-    "OBSTACLE_SLOTS",
     "ConfigError",
     "EnvFamily",
     "EpisodeError",

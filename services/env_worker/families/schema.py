@@ -9,13 +9,11 @@ from typing import Any
 
 import numpy as np
 
+from services.common.milestone_kinds import OBSTACLE_SLOTS
 from services.common.specs import SpecError, TensorSpec
 from services.env_worker.families.contract import ResetError
 from services.env_worker.milestones import milestone_specs
 from services.env_worker.signals import signal_specs
-
-#: Boxes of the obstacles near the task's object and target in ``task_obstacle_bbox`` (zero-padded).
-OBSTACLE_SLOTS = 32
 
 
 #: OSC_POSE deltas: xyz translation, axis-angle rotation, gripper (-1 open, +1 close).

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from services.common.milestone_kinds import OBSTACLE_SLOTS
 from services.env_worker import signals as sig
-from services.env_worker.families.schema import OBSTACLE_SLOTS
 from services.env_worker.milestones import (
     LIFT_HEIGHT,
     GoalPlan,
