@@ -21,7 +21,7 @@ import grpc
 
 from services.evolver.store import EpisodeKey, Outcome, Rollout, RolloutStore
 from services.evolver.trace import TraceRecorder
-from zetta.client import Gateway, SessionGroup, ZettaError
+from zetta import Gateway, SessionGroup, ZettaError
 from zetta_wire.codec import decode, decode_observation
 from zetta_wire.v1 import gateway_pb2, types_pb2
 
