@@ -52,8 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from bench_sweep import DEFAULT_MODEL, env_config, quiet_fds, random_replays  # this folder (bench/)
-from trees import export  # is the script's first import path
+from trees import export  # this folder (bench/) is the script's first import path
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -62,8 +61,10 @@ CHUNK = 8
 
 
 def _import_root(root: Path) -> None:
-    """Import ``services`` and ``zetta`` from ``root`` (this tree or an exported revision)."""
+    """Import ``services`` and ``zetta`` from ``root`` (this tree or an exported revision), and the
+    bench's own helpers (``bench.bench_sweep``) from this tree in either case."""
     sys.path[:0] = [str(root), str(root / "clients" / "python")]
+    sys.path.append(str(ROOT))
 
 
 def _families() -> Any:
@@ -85,6 +86,8 @@ def _decode_observation() -> Callable[..., Any]:
 
 
 def _slot(max_steps: int) -> tuple[Any, Any]:
+    from bench.bench_sweep import env_config, quiet_fds
+
     with quiet_fds():
         from services.env_worker.fast_step import warm_up
 
@@ -98,9 +101,10 @@ def _slot(max_steps: int) -> tuple[Any, Any]:
 def record(out: Path, episodes: int, max_steps: int) -> None:
     """Run the shipped policy in-process on episode keys (seed 0, init state k) and save its actions."""
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
-    ResetSpec = _families().ResetSpec
+    from bench.bench_sweep import DEFAULT_MODEL, quiet_fds, random_replays
     from services.policy_worker.models.base import load_model
 
+    ResetSpec = _families().ResetSpec
     family, slot = _slot(max_steps)
     with quiet_fds():
         policy = load_model(DEFAULT_MODEL)

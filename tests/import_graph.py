@@ -1,11 +1,11 @@
 """The allowed import directions between Zetta's packages, and a checker that reads them from the
 source (an AST walk, nothing is imported). docs/architecture.md draws the same table.
 
-Every import counts for the directions, wherever it sits (module level, inside a function, under
-``if TYPE_CHECKING``): a function-level import is still a dependency. Cycles are looked for among
-module-level imports only, because those are the ones that run when a module is imported; an
-import inside a function is how a module defers a heavy or optional dependency. A module's own
-package ``__init__`` runs before it, so importing ``a.b.c`` also counts as importing ``a.b``.
+Every import counts, wherever it sits (module level, inside a function, under ``if TYPE_CHECKING``):
+an import deferred into a function is still a dependency, and two modules that need each other
+are one module however their imports are placed, so cycles are looked for over all of them.
+A module's package ``__init__`` runs before it, so importing ``a.b.c`` also counts as importing
+``a.b`` (and ``a``) for cycles. ``Import.module_level`` tells which imports run at import time.
 """
 
 from __future__ import annotations
@@ -148,12 +148,10 @@ def direction_violations(imports: Iterable[Import], path_of: Mapping[str, Path])
 
 
 def cycles(imports: Iterable[Import]) -> list[list[str]]:
-    """Import cycles among module-level imports (each strongly connected component of two or more
-    modules, as a sorted list), counting a module's import of ``a.b.c`` as one of ``a.b`` too."""
+    """Import cycles (each strongly connected component of two or more modules, as a sorted list),
+    counting a module's import of ``a.b.c`` as one of ``a.b`` too."""
     graph: dict[str, set[str]] = {}
     for imp in imports:
-        if not imp.module_level:
-            continue
         targets = {imp.target}
         parts = imp.target.split(".")
         targets |= {".".join(parts[:k]) for k in range(1, len(parts))}

@@ -46,6 +46,11 @@ def _tree(tmp_path: Path, files: dict[str, str]) -> Path:
           "clients/python/zetta/client.py": ""}, "zetta_wire.codec imports zetta.client"),
         ({"services/ops/a.py": "from services.ops import b\n", "services/ops/b.py": "from . import c\n",
           "services/ops/c.py": "import services.ops.a\n"}, "import cycle: services.ops.a <-> services.ops.b <-> services.ops.c"),
+        ({"services/common/a.py": "from services.common import b\n",
+          "services/common/b.py": "def f():\n    from services.common import a\n"},
+         "import cycle: services.common.a <-> services.common.b"),
+        ({"services/common/a.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from services.common.b import X\n",
+          "services/common/b.py": "from services.common.a import Y\n"}, "import cycle: services.common.a <-> services.common.b"),
     ],
 )
 def test_a_violating_tree_is_reported(tmp_path: Path, files: dict[str, str], needle: str) -> None:
@@ -54,7 +59,7 @@ def test_a_violating_tree_is_reported(tmp_path: Path, files: dict[str, str], nee
 
 
 def test_allowed_imports_and_deferred_cycles_pass(tmp_path: Path) -> None:
-    """The public family API, the SDK from ops, and a cycle closed only inside a function."""
+    """The public family API, the SDK from ops, and a shared module two others import."""
     files = {
         "services/policy_worker/data.py": "def f():\n    from services.env_worker.families import get_family\n",
         "services/env_worker/families/__init__.py": "",
@@ -63,6 +68,7 @@ def test_allowed_imports_and_deferred_cycles_pass(tmp_path: Path) -> None:
         "clients/python/zetta/client.py": "from zetta_wire import codec\n",
         "clients/python/zetta_wire/codec.py": "",
         "services/common/a.py": "from services.common import b\n",
-        "services/common/b.py": "def f():\n    from services.common import a\n",
+        "services/common/c.py": "def f():\n    from services.common import b\n",
+        "services/common/b.py": "import math\n",
     }
     assert check(_tree(tmp_path, files)) == []
