@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig  # noqa: E402
-from services.policy_worker.vla.features import STATE_INPUTS  # noqa: E402
+from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig
+from services.policy_worker.vla.features import STATE_INPUTS
 
 SLO = 0.2
 

@@ -388,7 +388,7 @@ def plots(res: Results, docs: Path) -> list[Path]:
         path = docs / f"throughput-{name}.png"
         fig.tight_layout()  # type: ignore[attr-defined]
         fig.savefig(path, dpi=110)  # type: ignore[attr-defined]
-        plt.close(fig)  # type: ignore[arg-type]
+        plt.close(fig)
         paths.append(path)
 
     for name, attr, label in (("episodes", "episodes_per_min", "episodes/min"), ("steps", "steps_per_s", "env steps/s"),

@@ -62,7 +62,7 @@ def _row(suite: str, task: int, seed: int, condition: str, s: EpisodeSummary) ->
 _INVALID = {"DEADLINE_EXCEEDED", "UNAVAILABLE"}
 
 
-async def _pair(group, task: int, seed: int, args: argparse.Namespace, harness_dir: str,  # type: ignore[no-untyped-def]
+async def _pair(group, task: int, seed: int, args: argparse.Namespace, harness_dir: str,
                 tries: int = 3) -> tuple[EpisodeSummary, EpisodeSummary]:
     """Both conditions of one episode key; an infrastructure-invalid pair is rerun (Loop 1's rule)."""
     for attempt in range(tries):

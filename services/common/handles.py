@@ -240,7 +240,7 @@ class HandleSkill:
         side = np.sign(d[1]) if abs(d[1]) > 1e-6 else 1.0
         site = finger + np.array([0.0, side * p.finger_offset, 0.0])
         site[2] = center[2] + p.handle_dz
-        return site
+        return np.asarray(site)
 
     def finger_push(self, obs: Obs) -> np.ndarray:
         """Push the handle along its motion direction with the trailing finger of the open gripper."""

@@ -11,7 +11,7 @@ import asyncio
 import logging
 import signal
 import sys
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -98,13 +98,13 @@ class ServiceRunner:
         if self.on_drain is not None:
             try:
                 await asyncio.wait_for(self.on_drain(), timeout=self.grace_seconds)
-            except Exception:  # noqa: BLE001 - a failing drain hook must not block the stop
+            except Exception:  # a failing drain hook must not block the stop
                 log.exception("drain hook failed")
         await self.server.stop(self.grace_seconds)
         log.info("stopped")
 
 
-def run_service(main: Callable[[], Awaitable[None]], service: str) -> None:
+def run_service(main: Callable[[], Coroutine[Any, Any, None]], service: str) -> None:
     """Entry point wrapper: configuration errors exit 2 with the message, not a traceback."""
     from services.common.config import ConfigError
 

@@ -47,7 +47,7 @@ _FILE_CHANGE = {
 }
 
 
-def _timed(method: str):  # type: ignore[no-untyped-def]
+def _timed(method: str):
     """Hop latency and status code of every unary call (services/common/grpc_errors.timed_unary)."""
     return timed_unary("critic", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
 
@@ -262,7 +262,7 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
                 raise ge.invalid(f"step {step}: {exc}") from None
             try:
                 decision = await asyncio.to_thread(runtime.step, obs, action, frozenset(request.step.milestones))
-            except Exception as exc:  # noqa: BLE001 - the runtime contains critic failures; anything else ends the stream
+            except Exception as exc:  # the runtime contains critic failures; anything else ends the stream
                 log.exception("harness runtime failed", extra={"fields": {"ref": resolved.ref, "step": step}})
                 raise ServiceError(grpc.StatusCode.INTERNAL, f"{resolved.ref}: runtime failed at step {step}: {exc}") from None
             response = decision_message(step, decision)

@@ -319,7 +319,7 @@ class MilestoneTracker:
         fetch = {"bbox": probe.bbox, "contact": probe.gripper_contact, "handle_bbox": probe.handle_bbox,
                  "handle_contact": probe.handle_contact}
 
-        def get(what: str, name: str):  # type: ignore[no-untyped-def]
+        def get(what: str, name: str):
             key = (what, name)
             try:
                 return cache[key]

@@ -208,7 +208,7 @@ class SceneRenderer:
     def __init__(self, model: Any, data: Any, width: int, height: int) -> None:
         import mujoco
 
-        GLContext = _gl_context_class()  # noqa: N806
+        GLContext = _gl_context_class()
         self.model, self.data = model, data
         vis = model.vis.global_
         # The offscreen buffer bounds every frame; grow it before the context is made.

@@ -40,7 +40,7 @@ class RegistryClient:
                 resp = self._stub.Publish(req, timeout=60)
                 return f"{resp.manifest.name}@{resp.manifest.version}"
             except grpc.RpcError as exc:
-                if exc.code() not in TRANSIENT or attempt == RETRIES - 1:  # type: ignore[attr-defined]
+                if exc.code() not in TRANSIENT or attempt == RETRIES - 1:
                     raise
                 time.sleep(1.0 + attempt)
         raise AssertionError("unreachable")

@@ -311,7 +311,7 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
         resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
         for part in parts:
             args = cand.plan.args.get(part, {}) if len(parts) > 1 else cand.plan.args
-            resolve(recs[part].params, args, part)  # type: ignore[arg-type]
+            resolve(recs[part].params, args, part)
     except ParamError as exc:
         return str(exc)
     edits = cand.apply(parent).edits_from(parent)

@@ -290,7 +290,7 @@ class ComposeStack:
 
 def fetch(url: str, timeout: float = 5) -> str:
     """GET a URL (only ever a loopback address here)."""
-    with urllib.request.urlopen(url, timeout=timeout) as resp:  # noqa: S310 - loopback only
+    with urllib.request.urlopen(url, timeout=timeout) as resp:  # loopback only
         return resp.read().decode()
 
 

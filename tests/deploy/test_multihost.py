@@ -151,7 +151,7 @@ class Hosts:
         return env
 
     def start(self, name: str, host: str, argv: list[str], **settings: str) -> None:
-        log = open(self.workdir / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        log = open(self.workdir / f"{name}.log", "ab")  # closed with the process
         self.procs[name] = subprocess.Popen(
             ["ip", "netns", "exec", self.net.ns(host), *argv], env=self.env(**settings), cwd=ROOT,
             stdout=log, stderr=subprocess.STDOUT, start_new_session=True,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import zetta.gym  # noqa: F401 - registers zetta/Session-v0
+import zetta.gym  # registers zetta/Session-v0
 from tests.conftest import LIBERO_CREAM
 from zetta import SyncGateway, ZettaError
 from services.ops.local_stack import LocalStack

@@ -121,7 +121,7 @@ class _Handler(BaseHTTPRequestHandler):
     reply = ""
     seen: list[dict] = []
 
-    def do_POST(self) -> None:  # noqa: N802
+    def do_POST(self) -> None:
         body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
         _Handler.seen.append({"path": self.path, "auth": self.headers.get("Authorization"), "body": body})
         out = json.dumps({"choices": [{"message": {"role": "assistant", "content": _Handler.reply}}]}).encode()

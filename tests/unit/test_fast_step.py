@@ -164,10 +164,10 @@ def test_unsupported_env_falls_back_to_env_step() -> None:
     class Custom:  # an environment whose step the fast path does not know
         robots: list = []
 
-        def step(self, action):  # noqa: ANN001, ANN201
+        def step(self, action):
             return {}, 0.0, False, {}
 
-        def _pre_action(self, action, policy_step=False):  # noqa: ANN001, ANN201
+        def _pre_action(self, action, policy_step=False):
             pass
 
     env = Custom()

@@ -15,9 +15,9 @@ the same event-loop turn (e.g. from ``asyncio.gather`` over many sessions) leave
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import grpc
 import numpy as np
@@ -477,7 +477,7 @@ class StepStream:
         if resp is grpc.aio.EOF:
             status = await self._call.code()
             raise ZettaError(status, await self._call.details() or "stream closed")
-        return resp
+        return cast(gateway_pb2.StepStreamResponse, resp)
 
     async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
                     record_video: bool = False) -> ResetResult:
@@ -509,7 +509,7 @@ class StepStream:
 class _Batcher:
     """Coalesces single-session calls of the same kind and parameters made in one loop turn."""
 
-    _REQUESTS = {
+    _REQUESTS: dict[str, Callable[[list[str], list[Any]], Any]] = {
         "Reset": lambda ids, payloads: gateway_pb2.ResetRequest(session_ids=ids, specs=payloads),
         "ActionStep": lambda ids, payloads: gateway_pb2.ActionStepRequest(session_ids=ids, actions=payloads),
         "PolicyStep": lambda ids, payloads: gateway_pb2.PolicyStepRequest(session_ids=ids, policy=payloads[0]),

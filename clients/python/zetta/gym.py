@@ -123,12 +123,14 @@ class ZettaEnv(SchemaEnv):
                  render_camera: str = "") -> None:
         check_render_mode(render_mode)
         self._owns_gateway = isinstance(gateway, str)
-        self._gateway = SyncGateway(gateway) if isinstance(gateway, str) else gateway
+        gw = SyncGateway(gateway) if isinstance(gateway, str) else gateway
+        #: None once closed.
+        self._gateway: SyncGateway | None = gw
         try:
-            self._sessions = self._gateway.create_sessions(env_family=env_family, n=1, env_config=env_config)
+            self._sessions = gw.create_sessions(env_family=env_family, n=1, env_config=env_config)
         except BaseException:
             if self._owns_gateway:
-                self._gateway.close()
+                gw.close()
             raise
         info = self._sessions.infos[0]
         self.session_id: str = info.session_id

@@ -12,7 +12,7 @@ import numpy as np
 
 from zetta_wire.v1 import types_pb2
 
-_TO_WIRE: dict[np.dtype, int] = {
+_TO_WIRE: dict[np.dtype, types_pb2.Dtype] = {
     np.dtype("float32"): types_pb2.DTYPE_FLOAT32,
     np.dtype("float64"): types_pb2.DTYPE_FLOAT64,
     np.dtype("float16"): types_pb2.DTYPE_FLOAT16,
@@ -29,7 +29,7 @@ class TensorDecodeError(ValueError):
     """A tensor on the wire is malformed (unknown dtype, byte count not matching its shape)."""
 
 
-def dtype_to_wire(dtype: np.dtype | str) -> int:
+def dtype_to_wire(dtype: np.dtype | str) -> types_pb2.Dtype:
     """Wire enum of a numpy dtype; raises ValueError for dtypes that cannot travel."""
     try:
         return _TO_WIRE[np.dtype(dtype)]

@@ -29,7 +29,7 @@ from services.harness.package.safety import FORBIDDEN_NAMES, check_source, is_al
 _load_counter = itertools.count(1)
 
 
-def _guarded_import(name: str, globals: Any = None, locals: Any = None, fromlist: Any = (), level: int = 0) -> ModuleType:  # noqa: A002 - the signature of __import__
+def _guarded_import(name: str, globals: Any = None, locals: Any = None, fromlist: Any = (), level: int = 0) -> ModuleType:  # the signature of __import__
     """``__import__`` for harness modules: the allowlist only, absolute imports only."""
     if level != 0 or not is_allowed_import(name):
         raise ImportError(f"harness code may not import {name!r}")
@@ -55,7 +55,7 @@ def _import_tool(stem: str, path: str, source: str, module_prefix: str, origin: 
     linecache.cache[filename] = (len(source), None, source.splitlines(keepends=True), filename)
     sys.modules[module_name] = module
     try:
-        exec(compile(source, filename, "exec", dont_inherit=True), module.__dict__)  # noqa: S102 - checked code
+        exec(compile(source, filename, "exec", dont_inherit=True), module.__dict__)  # checked code
     except Exception as exc:  # noqa: BLE001 - any error at import rejects the package
         sys.modules.pop(module_name, None)
         frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == filename]

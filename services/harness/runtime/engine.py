@@ -317,7 +317,7 @@ class HarnessRuntime:
         if self._active is not None:
             next_action = self._continue(window, proposals)
             if next_action is not None:
-                return Decision(self._mode, proposals, next_action, self._active.id)  # type: ignore[union-attr]
+                return Decision(self._mode, proposals, next_action, self._active.id)
             return Decision(POLICY, proposals, None, "")
         if self._step <= self._quiet_until:
             return Decision(POLICY, proposals, None, "")
@@ -331,7 +331,7 @@ class HarnessRuntime:
         next_action = self._begin(window, verdict.accepted, verdict.rule, proposals)
         if next_action is None:
             return Decision(POLICY, proposals, None, "")
-        return Decision(self._mode, proposals, next_action, self._active.id)  # type: ignore[union-attr]
+        return Decision(self._mode, proposals, next_action, self._active.id)
 
     def finish(self, success: bool) -> EpisodeReport:
         """End the episode: an intervention still in control ends with it."""

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, state_vector
+from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, state_vector
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
 PICK_PLACE_TASKS = (1, 2, 4, 6, 8, 9)

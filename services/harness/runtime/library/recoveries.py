@@ -382,7 +382,7 @@ class OperateHandle(Recovery):
     def _move(self, eef: np.ndarray, goal: np.ndarray, gripper: float, limit: float) -> np.ndarray:
         return t.move_action(eef, goal, gripper, max_action=limit)
 
-    def _maybe_restage(self, now) -> None:  # type: ignore[no-untyped-def]
+    def _maybe_restage(self, now) -> None:
         """Rise first when the hand is near the handle and below the restage height."""
         handle = t.vec(now, "task_object_bbox")
         eef = t.vec(now, "robot0_eef_pos")
