@@ -5,7 +5,7 @@ Every import counts, wherever it sits (module level, inside a function, under ``
 an import deferred into a function is still a dependency, and two modules that need each other
 are one module however their imports are placed, so cycles are looked for over all of them.
 A module's package ``__init__`` runs before it, so importing ``a.b.c`` also counts as importing
-``a.b`` (and ``a``) for cycles. ``Import.module_level`` tells which imports run at import time.
+``a.b`` (and ``a``) for cycles.
 """
 
 from __future__ import annotations
@@ -46,7 +46,6 @@ class Import:
     source: str
     target: str
     line: int
-    module_level: bool
 
 
 def module_name(root: Path, path: Path) -> str:
@@ -95,25 +94,16 @@ def _targets(node: ast.Import | ast.ImportFrom, source: str, is_package: bool, m
 
 
 def imports_of(modules: Mapping[str, Path]) -> list[Import]:
-    """Every import between modules of the tree, with whether it runs at module import time."""
+    """Every import between modules of the tree."""
     out: list[Import] = []
     for name, path in modules.items():
         tree = ast.parse(path.read_text(), filename=str(path))
-        deferred = {id(n) for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
-                    for n in ast.walk(fn) if n is not fn}
-        deferred |= {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node.test)
-                     for stmt in node.body for n in ast.walk(stmt)}
         for node in ast.walk(tree):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 for target in _targets(node, name, path.name == "__init__.py", modules):
                     if target != name:
-                        out.append(Import(name, target, node.lineno, id(node) not in deferred))
+                        out.append(Import(name, target, node.lineno))
     return out
-
-
-def _is_type_checking(test: ast.expr) -> bool:
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
 def owner(module: str) -> str | None:
