@@ -33,7 +33,8 @@ demo: setup
 up: setup
 	$(VENV)/bin/zetta up
 
-test: setup
+# CI runs this (.ci/run): lint first, then the default suite.
+test: setup lint
 	$(PY) -m pytest -m "not slow and not gpu" -q
 
 test-slow: setup
@@ -59,8 +60,11 @@ bench-policy: setup
 bench-sim: setup
 	$(PY) bench/bench_sim.py
 
+# The API (buf), errors and unused suppressions (ruff), types (mypy; scope in pyproject.toml).
 lint: setup
 	$(VENV)/bin/buf lint
+	$(VENV)/bin/ruff check services clients bench scripts tests deploy
+	$(VENV)/bin/mypy
 
 clean:
-	rm -rf $(VENV) clients/python/zetta/v1
+	rm -rf $(VENV) clients/python/zetta_wire/v1

@@ -28,10 +28,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients" / "python"))
 
-from services.critic.package.loader import load_package  # noqa: E402
-from services.env_worker.families.base import ResetSpec, get_family  # noqa: E402
-from services.env_worker.harness_loop import SlotHarness  # noqa: E402
-from services.policy_worker.models.scripted import ScriptedPickPlacePolicy  # noqa: E402
+from services.harness.package.loader import load_package
+from services.env_worker.families import ResetSpec, get_family
+from services.env_worker.harness_loop import SlotHarness
+from services.policy_worker.models.scripted import ScriptedPickPlacePolicy
 
 CRITICS = [
     ("non_approach", {}), ("approach_wrong_object", {}), ("failed_acquisition", {}), ("grasp_lost", {}),
@@ -73,9 +73,9 @@ def run_plain(slot, policy, obs, steps: int) -> tuple[int, float]:
     return n, (time.perf_counter() - start) / max(1, n)
 
 
-def timed(fn, wall: list[float], cpu: list[float]):  # type: ignore[no-untyped-def]
+def timed(fn, wall: list[float], cpu: list[float]):
     """``fn`` wrapped to record its wall and thread CPU time per call."""
-    def wrapper(*args, **kwargs):  # type: ignore[no-untyped-def]
+    def wrapper(*args, **kwargs):
         w, c = time.perf_counter(), time.thread_time()
         try:
             return fn(*args, **kwargs)

@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig  # noqa: E402
-from services.common.specs import TensorSpec  # noqa: E402
+from services.common.specs import TensorSpec
+from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig
 
 SLO = 0.2
 #: The served checkpoint's inputs (set in main): camera frames and proprioception for the image VLA.

@@ -53,7 +53,7 @@ def libero_config(size: int, cameras: Sequence[str] = TWO) -> dict[str, Any]:
 
 
 def open_slot(family_name: str, config: dict[str, Any]) -> tuple[Any, Any]:
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
 
     family = get_family(family_name)(config)
     slot = family.init()
@@ -115,7 +115,7 @@ def bench_frames(sizes: Sequence[int], repeats: int, n: int) -> dict[tuple, list
 
 def bench_steps(repeats: int, steps: int) -> dict[str, list[float]]:
     """ms per executed action by how images are produced."""
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import ResetSpec
 
     family, slot = open_slot("libero", libero_config(128))
     refl = Reflections(slot.renderer.scene().model)

@@ -10,7 +10,7 @@ naive        one process, episodes one after another, and for every episode a LI
              as everywhere), the policy called in-process on a batch of one. Half of its episodes
              run before the stack starts and half after it stops, so a load that drifts during
              the run (the machine is shared) weighs on both sides alike.
-run_episode  ``zetta.local_stack.LocalStack``: Redis, the gateway, 2 env workers x 8 slots and one
+run_episode  ``services.ops.local_stack.LocalStack``: Redis, the gateway, 2 env workers x 8 slots and one
              policy worker, each its own process on loopback. Sessions are created once (the
              creation time is printed on its own and is not part of episodes/min); then
              ``concurrency`` lanes each drive one session and run episodes back to back with
@@ -51,9 +51,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
-from zetta import bench_sweep  # noqa: E402
-from zetta.bench_report import aligned  # noqa: E402
-from zetta.bench_sweep import Episode, balanced, quiet_fds  # noqa: E402
+from bench import bench_sweep  # noqa: E402
+from bench.bench_report import aligned  # noqa: E402
+from bench.bench_sweep import Episode, balanced, quiet_fds  # noqa: E402
 
 SUITE = "libero_goal"
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -387,7 +387,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     command = " ".join(["python bench/bench_rollout.py", *(sys.argv[1:] if argv is None else argv)])
-    from zetta.local_stack import LocalStack
+    from services.ops.local_stack import LocalStack
 
     t_all = time.perf_counter()
     load0 = os.getloadavg()[0]

@@ -73,7 +73,7 @@ def _actions(n: int, seed: int = 0) -> np.ndarray:
 
 
 def _family(name: str, config: dict[str, Any]) -> Any:
-    from services.env_worker.families.base import get_family
+    from services.env_worker.families import get_family
 
     return get_family(name)(config)
 
@@ -88,7 +88,7 @@ def bench_reset_phases(repeats: int) -> dict[str, dict[str, float]]:
     and a key's first reset on a second slot after the first slot settled it (the group's shared
     snapshot restored on another env)."""
     from services.env_worker.families import settled
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import ResetSpec
     from services.env_worker.fast_step import make_stepper
 
     family = _family("libero", LIBERO)
@@ -158,7 +158,7 @@ def print_reset_phases(res: dict[str, dict[str, float]]) -> None:
 def bench_steps(name: str, config: dict[str, Any], repeats: int, n: int) -> dict[str, Any]:
     import mujoco
 
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import ResetSpec
     from services.env_worker.fast_step import FastStepper
 
     family = _family(name, config)
@@ -308,7 +308,7 @@ def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
 
 
 def bench_create(repeats: int) -> dict[str, Any]:
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import ResetSpec
     from services.env_worker.sharing import copy_model
 
     out: dict[str, Any] = {}
@@ -422,7 +422,7 @@ def _step_loop(stepper: Any, actions: np.ndarray) -> None:
 
 
 def _make_slots(count: int, fast: bool) -> tuple[Any, list[Any], list[Any]]:
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import ResetSpec
     from services.env_worker.fast_step import make_stepper
 
     family = _family("libero", {**LIBERO, "fast_step": fast})
@@ -509,7 +509,7 @@ class _Processes:
 
 def child_cold_build(name: str) -> None:
     start = time.perf_counter()
-    from services.env_worker.families.base import ResetSpec, select_gl_backend
+    from services.env_worker.families import ResetSpec, select_gl_backend
 
     select_gl_backend()
     family = _family(name, LIBERO if name == "libero" else LIFT)
@@ -519,7 +519,7 @@ def child_cold_build(name: str) -> None:
 
 
 def child_parallel(arg: str) -> None:
-    from services.env_worker.families.base import select_gl_backend
+    from services.env_worker.families import select_gl_backend
 
     select_gl_backend()
     fast, k = (int(x) for x in arg.split(","))
@@ -596,7 +596,7 @@ def main() -> None:
     if args.child_cold_build:
         child_cold_build(args.child_cold_build)
         return
-    from services.env_worker.families.base import select_gl_backend
+    from services.env_worker.families import select_gl_backend
 
     select_gl_backend()
     from services.env_worker import fast_step

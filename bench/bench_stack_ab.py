@@ -35,9 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python"), str(ROOT / "bench")]
 
 import trees  # noqa: E402
-from zetta import bench_sweep as bs  # noqa: E402
+from bench import bench_sweep as bs  # noqa: E402
 from zetta.client import Gateway  # noqa: E402
-from zetta.local_stack import LocalStack  # noqa: E402
+from services.ops.local_stack import LocalStack  # noqa: E402
 
 
 @dataclass

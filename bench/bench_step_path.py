@@ -36,6 +36,7 @@ milestones are those of the slot path that observes every step.
 from __future__ import annotations
 
 import argparse
+import importlib
 import inspect
 import json
 import os
@@ -60,35 +61,55 @@ CHUNK = 8
 
 
 def _import_root(root: Path) -> None:
-    """Import ``services`` and ``zetta`` from ``root`` (this tree or an exported revision)."""
+    """Import ``services`` and ``zetta`` from ``root`` (this tree or an exported revision), and the
+    bench's own helpers (``bench.bench_sweep``) from this tree in either case."""
     sys.path[:0] = [str(root), str(root / "clients" / "python")]
+    sys.path.append(str(ROOT))
+
+
+def _families() -> Any:
+    """The env families' API of the tree imported: their public module, or ``families.base`` in a
+    revision from before the API had one (measured with ``--against``)."""
+    import services.env_worker.families as api
+
+    if hasattr(api, "ResetSpec"):
+        return api
+    return importlib.import_module("services.env_worker.families.base")
+
+
+def _decode_observation() -> Callable[..., Any]:
+    """The codec's observation decoder: ``zetta.codec`` in older revisions, ``zetta_wire`` since."""
+    try:
+        return importlib.import_module("zetta.codec").decode_observation
+    except ImportError:
+        return importlib.import_module("zetta_wire.codec").decode_observation
 
 
 def _slot(max_steps: int) -> tuple[Any, Any]:
-    from zetta.bench_sweep import env_config, quiet_fds
+    from bench.bench_sweep import env_config, quiet_fds
 
     with quiet_fds():
-        from services.env_worker.families.base import get_family, select_gl_backend
         from services.env_worker.fast_step import warm_up
 
-        select_gl_backend()
+        families = _families()
+        families.select_gl_backend()
         warm_up()
-        family = get_family("libero")(env_config(TASK, max_steps))
+        family = families.get_family("libero")(env_config(TASK, max_steps))
         return family, family.init()
 
 
 def record(out: Path, episodes: int, max_steps: int) -> None:
     """Run the shipped policy in-process on episode keys (seed 0, init state k) and save its actions."""
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
-    from services.env_worker.families.base import ResetSpec
+    from bench.bench_sweep import DEFAULT_MODEL, quiet_fds, random_replays
     from services.policy_worker.models.base import load_model
+    from bench.bench_sweep import quiet_fds
     from services.common.policies import PRIVILEGED_BASELINE
-    from zetta.bench_sweep import quiet_fds
 
+    ResetSpec = _families().ResetSpec
     family, slot = _slot(max_steps)
     with quiet_fds():  # a state policy: these slots render no camera, and its actions are deterministic
         policy = load_model(PRIVILEGED_BASELINE)
-    from zetta.bench_sweep import random_replays
 
     actions = {"random": random_replays(1, max_steps, 1)[0][1]}
     for k in range(episodes):
@@ -116,7 +137,7 @@ def measure(actions_file: Path, max_steps: int, parts: bool) -> dict[str, Any]:
     of a slot step, timed by wrappers that add a little of their own)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
     from services.env_worker.fast_step import make_stepper
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import BoundSlot, Episode
@@ -173,7 +194,7 @@ def _digest(slot: Any, recorded: Any, keys: list[str]) -> str:
     trees that agree on it behave the same on these steps, bit for bit."""
     import hashlib
 
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
 
     h = hashlib.blake2b(digest_size=16)
     for key in keys:
@@ -192,10 +213,10 @@ def _chunk_matches_slot(slot: Any, bound: Any, recorded: Any, keys: list[str]) -
     """Whether the env worker's chunk path (observation built only after a chunk's last action)
     returns the observation, reward, success, info and milestones of the path that observes every
     step, on every chunk of the replayed episodes."""
-    from services.env_worker.families.base import ResetSpec
+    ResetSpec = _families().ResetSpec
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import Episode
-    from zetta.codec import decode_observation
+    decode_observation = _decode_observation()
 
     for key in keys:
         actions = recorded[key]
@@ -221,8 +242,8 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
     """Thread CPU microseconds per step of the named parts of a slot step (wrapped functions), the
     observation built after every chunk's last action as the env worker does."""
     from services.env_worker import signals
-    from services.env_worker.families import base, libero, task_state
-    from services.env_worker.families.base import ResetSpec
+    from services.env_worker.families import episode, libero, task_state
+    ResetSpec = _families().ResetSpec
     from services.env_worker.fast_step import FastStepper
     from services.env_worker.milestones import MilestoneTracker
 
@@ -243,7 +264,7 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
 
     env_cls = type(slot._env)
     for owner, name, label in (
-        (base.EpisodeSlot, "step", "slot.step"),
+        (episode.EpisodeSlot, "step", "slot.step"),
         (FastStepper, "step", "  FastStepper.step"),
         (FastStepper, "_compiled_substeps", "    substeps (kernel, observables)"),
         (env_cls, "_post_action", "    _post_action (reward)"),
@@ -260,7 +281,7 @@ def _parts(slot: Any, recorded: Any, keys: list[str]) -> dict[str, float]:
         (task_state.TaskState, "_stage_tensors", "      _stage_tensors"),
         (task_state.TaskState, "_signals", "      _signals"),
         (env_cls, "_check_success", "  _check_success (every call)"),
-        (base, "normalize_observation", "  normalize_observation"),
+        (episode, "normalize_observation", "  normalize_observation"),
     ):
         if hasattr(owner, name):
             wrap(owner, name, label)

@@ -29,10 +29,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
 from services.common.policies import DEFAULT_POLICY
-from services.critic.package.loader import load_package  # noqa: E402
+from services.harness.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
-from zetta.local_stack import LocalStack  # noqa: E402
-from zetta.stats import wilson  # noqa: E402
+from services.ops.local_stack import LocalStack  # noqa: E402
+from zetta_wire.stats import wilson  # noqa: E402
 
 
 def _seeds(text: str) -> list[int]:
@@ -63,7 +63,7 @@ def _row(suite: str, task: int, seed: int, condition: str, s: EpisodeSummary) ->
 _INVALID = {"DEADLINE_EXCEEDED", "UNAVAILABLE"}
 
 
-async def _pair(group, task: int, seed: int, args: argparse.Namespace, harness_dir: str,  # type: ignore[no-untyped-def]
+async def _pair(group, task: int, seed: int, args: argparse.Namespace, harness_dir: str,
                 tries: int = 3) -> tuple[EpisodeSummary, EpisodeSummary]:
     """Both conditions of one episode key; an infrastructure-invalid pair is rerun (Loop 1's rule)."""
     for attempt in range(tries):

@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
-from zetta.stats import wilson  # noqa: E402 - after the path set-up above
+from zetta_wire.stats import wilson  # noqa: E402 - after the path set-up above
 
 
 _SLOTS: dict[str, object] = {}
@@ -37,7 +37,7 @@ def run_one(job: tuple[str, int, int, int]) -> dict:
     suite, task, init, seed = job
     import numpy as np
 
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.oracle import OraclePolicy
 
     slot = _SLOTS.get(suite)

@@ -1,7 +1,7 @@
 """Fixtures shared by the integration and fault tests: real stacks on loopback.
 
 A stack is redis-server, the gateway, env workers and a policy worker, each its own OS process
-(zetta.local_stack.LocalStack). Starting one costs about 15 s on two cores, so tests that leave
+(services.ops.local_stack.LocalStack). Starting one costs about 15 s on two cores, so tests that leave
 the stack healthy share one session-wide stack; tests that kill or restart processes get their
 own from ``stack_factory``. Every stack is stopped at teardown, also when the test failed, and the
 service logs of a failed test are printed so a failure can be read without rerunning it.
@@ -17,8 +17,8 @@ from typing import Any
 import pytest
 
 from zetta import Gateway
-from zetta.local_stack import LocalStack
-from zetta.v1 import gateway_pb2, types_pb2
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import gateway_pb2, types_pb2
 
 #: Short heartbeats so LOST detection is fast in tests (production default: 1000 / 3000 ms).
 HEARTBEAT_INTERVAL_MS = 250

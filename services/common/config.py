@@ -6,10 +6,15 @@ must stop the process with a message that names the variable, not surface later 
 
 from __future__ import annotations
 
+import builtins
 import os
 from collections.abc import Mapping
+from typing import TypeVar
 
 from services.common.cpus import allowed_cpus, format_cpu_list, parse_cpu_list
+
+#: A bounded number setting (the methods named ``int`` and ``float`` shadow the builtins in the class).
+_N = TypeVar("_N", int, float)
 
 
 class ConfigError(ValueError):
@@ -36,7 +41,8 @@ class EnvReader:
         value = self._raw(name, default, required)
         return default if value is None else value
 
-    def int(self, name: str, default: int, minimum: int | None = None, maximum: int | None = None) -> int:
+    def int(self, name: builtins.str, default: builtins.int, minimum: builtins.int | None = None,
+            maximum: builtins.int | None = None) -> builtins.int:
         """An integer setting within optional bounds."""
         raw = self._raw(name, None, False)
         if raw is None:
@@ -48,7 +54,8 @@ class EnvReader:
             return default
         return self._bounded(name, value, minimum, maximum)
 
-    def float(self, name: str, default: float, minimum: float | None = None, maximum: float | None = None) -> float:
+    def float(self, name: builtins.str, default: builtins.float, minimum: builtins.float | None = None,
+              maximum: builtins.float | None = None) -> builtins.float:
         """A float setting within optional bounds."""
         raw = self._raw(name, None, False)
         if raw is None:
@@ -60,7 +67,7 @@ class EnvReader:
             return default
         return self._bounded(name, value, minimum, maximum)
 
-    def bool(self, name: str, default: bool) -> bool:
+    def bool(self, name: builtins.str, default: builtins.bool) -> builtins.bool:
         """A boolean setting: 1/0, true/false, yes/no, on/off."""
         raw = self._raw(name, None, False)
         if raw is None:
@@ -73,14 +80,14 @@ class EnvReader:
         self._errors.append(f"{name}={raw!r} is not a boolean (use true or false)")
         return default
 
-    def address(self, name: str, default: str = "", required: bool = False) -> str:
+    def address(self, name: builtins.str, default: builtins.str = "", required: builtins.bool = False) -> builtins.str:
         """A host:port address."""
         value = self.str(name, default, required)
         if value and (":" not in value or not value.rsplit(":", 1)[1].isdigit()):
             self._errors.append(f"{name}={value!r} is not a host:port address")
         return value
 
-    def cpus(self, name: str) -> frozenset[int] | None:
+    def cpus(self, name: builtins.str) -> frozenset[builtins.int] | None:
         """A CPU list (``0-3,8``) the process may run on; None when unset."""
         raw = self._raw(name, None, False)
         if raw is None:
@@ -97,18 +104,18 @@ class EnvReader:
             return None
         return cpus
 
-    def fail(self, message: str) -> None:
+    def fail(self, message: builtins.str) -> None:
         """Record a problem that involves several variables."""
         self._errors.append(message)
 
-    def _bounded(self, name: str, value, minimum, maximum):  # type: ignore[no-untyped-def]
+    def _bounded(self, name: builtins.str, value: _N, minimum: _N | None, maximum: _N | None) -> _N:
         if minimum is not None and value < minimum:
             self._errors.append(f"{name}={value} is below the minimum {minimum}")
         if maximum is not None and value > maximum:
             self._errors.append(f"{name}={value} is above the maximum {maximum}")
         return value
 
-    def finish(self, service: str) -> None:
+    def finish(self, service: builtins.str) -> None:
         """Raise ConfigError listing every problem found so far."""
         if self._errors:
             lines = "\n  ".join(self._errors)

@@ -6,9 +6,15 @@ and the trailing metadata (which sessions failed, when to retry) are set in one 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
+from typing import Any
 
 import grpc
+
+from zetta_wire.errors import error_metadata, parse_error_metadata
+
+#: An async servicer method: (self, request, context) -> response.
+_Handler = Callable[[Any, Any, Any], Awaitable[Any]]
 
 
 class ServiceError(Exception):
@@ -29,12 +35,7 @@ class ServiceError(Exception):
 
     def trailing_metadata(self) -> tuple[tuple[str, str], ...]:
         """Machine-readable details: failed sessions and a retry hint."""
-        md: list[tuple[str, str]] = []
-        if self.session_ids:
-            md.append(("zetta-failed-sessions", ",".join(self.session_ids)))
-        if self.retry_after_ms is not None:
-            md.append(("retry-after-ms", str(self.retry_after_ms)))
-        return tuple(md)
+        return error_metadata(self.session_ids, self.retry_after_ms)
 
     async def abort(self, context: grpc.aio.ServicerContext) -> None:
         """End the call with this error."""
@@ -69,22 +70,16 @@ def unavailable(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
 
 def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
     """Re-raise a downstream error with context, keeping its code and failed sessions."""
-    sessions: list[str] = []
-    retry: int | None = None
-    for key, value in err.trailing_metadata() or ():
-        if key == "zetta-failed-sessions":
-            sessions = [s for s in value.split(",") if s]
-        elif key == "retry-after-ms":
-            retry = int(value)
-    return ServiceError(err.code(), f"{what}: {err.details()}", sessions, retry)
+    details = parse_error_metadata(err.trailing_metadata())
+    return ServiceError(err.code(), f"{what}: {err.details()}", details.session_ids, details.retry_after_ms)
 
 
-def error_boundary(method):  # type: ignore[no-untyped-def]
+def error_boundary(method: _Handler) -> _Handler:
     """Decorator for async servicer methods: a ServiceError becomes its status, nothing else leaks."""
     import functools
 
     @functools.wraps(method)
-    async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+    async def wrapper(self: Any, request: Any, context: Any) -> Any:
         try:
             return await method(self, request, context)
         except ServiceError as exc:
@@ -93,7 +88,8 @@ def error_boundary(method):  # type: ignore[no-untyped-def]
     return wrapper
 
 
-def timed_unary(service: str, method: str, on_code=None):  # type: ignore[no-untyped-def]
+def timed_unary(service: str, method: str,
+                on_code: Callable[[str, str], None] | None = None) -> Callable[[_Handler], _Handler]:
     """Decorator for unary async servicer methods: the hop latency (zetta_hop_latency_seconds) of
     every call, the status code handed to ``on_code`` (a per-service request counter), and the
     :func:`error_boundary` around it, so every service records its hop the same way."""
@@ -104,9 +100,9 @@ def timed_unary(service: str, method: str, on_code=None):  # type: ignore[no-unt
 
     hist = HOP_LATENCY.labels(service, method)
 
-    def deco(fn):  # type: ignore[no-untyped-def]
+    def deco(fn: _Handler) -> _Handler:
         @functools.wraps(fn)
-        async def wrapper(self, request, context):  # type: ignore[no-untyped-def]
+        async def wrapper(self: Any, request: Any, context: Any) -> Any:
             start = time.perf_counter()
             code = "OK"
             try:

@@ -1,7 +1,7 @@
 """Handle geometry and motions for articulation stages: a knob's lever, a drawer's bar.
 
 One module for the scripted oracle (services/policy_worker/models/oracle.py) and the harness
-library's articulation recoveries (services/critic/runtime/library/recoveries.py), like
+library's articulation recoveries (services/harness/runtime/library/recoveries.py), like
 services/common/rotations.py for orientations: both compute the same handle frame, the same finger
 push along a lever's tangent, the same front grasp and pull of a bar, and the same hook of a bar
 too low to grip from the front, from the observation tensors the env families publish for an
@@ -240,7 +240,7 @@ class HandleSkill:
         side = np.sign(d[1]) if abs(d[1]) > 1e-6 else 1.0
         site = finger + np.array([0.0, side * p.finger_offset, 0.0])
         site[2] = center[2] + p.handle_dz
-        return site
+        return np.asarray(site)
 
     def finger_push(self, obs: Obs) -> np.ndarray:
         """Push the handle along its motion direction with the trailing finger of the open gripper."""

@@ -11,7 +11,7 @@ import asyncio
 import logging
 import signal
 import sys
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,17 +21,7 @@ from grpc_health.v1._async import HealthServicer
 from grpc_reflection.v1alpha import reflection
 from prometheus_client import start_http_server
 
-#: Large enough for a batch of camera observations; the default 4 MiB is not.
-MAX_MESSAGE_BYTES = 256 * 1024 * 1024
-
-CHANNEL_OPTIONS: list[tuple[str, Any]] = [
-    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
-    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
-    ("grpc.keepalive_time_ms", 20_000),
-    ("grpc.keepalive_timeout_ms", 10_000),
-    ("grpc.keepalive_permit_without_calls", 1),
-    ("grpc.http2.max_pings_without_data", 0),
-]
+from zetta_wire.channel import MAX_MESSAGE_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -108,13 +98,13 @@ class ServiceRunner:
         if self.on_drain is not None:
             try:
                 await asyncio.wait_for(self.on_drain(), timeout=self.grace_seconds)
-            except Exception:  # noqa: BLE001 - a failing drain hook must not block the stop
+            except Exception:  # a failing drain hook must not block the stop
                 log.exception("drain hook failed")
         await self.server.stop(self.grace_seconds)
         log.info("stopped")
 
 
-def run_service(main: Callable[[], Awaitable[None]], service: str) -> None:
+def run_service(main: Callable[[], Coroutine[Any, Any, None]], service: str) -> None:
     """Entry point wrapper: configuration errors exit 2 with the message, not a traceback."""
     from services.common.config import ConfigError
 

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from services.common.specs import TensorSpec
-from zetta.codec import dtype_from_wire, dtype_to_wire
-from zetta.v1 import types_pb2
+from zetta_wire.codec import dtype_from_wire, dtype_to_wire
+from zetta_wire.v1 import types_pb2
 
 
 def spec_to_wire(spec: TensorSpec, out: types_pb2.TensorSpec | None = None) -> types_pb2.TensorSpec:

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from services.common.config import EnvReader
-from services.critic.package.format import MAX_PACKAGE_BYTES
+from services.harness.package.format import MAX_PACKAGE_BYTES
 
 
 @dataclass(frozen=True)

@@ -14,11 +14,11 @@ from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.critic.config import CriticConfig
-from services.critic.package.probe import start_fork_server
-from services.critic.package.store import PackageStore
+from services.harness.package.probe import start_fork_server
+from services.harness.package.store import PackageStore
 from services.critic.registry import HarnessRegistry
 from services.critic.servicer import CriticServicer, HarnessRegistryServicer, PackageCache
-from zetta.v1 import critic_pb2, critic_pb2_grpc
+from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
 
 async def main() -> None:

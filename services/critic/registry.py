@@ -30,7 +30,7 @@ import grpc
 import redis.asyncio as aioredis
 
 from services.common import grpc_errors as ge
-from services.critic.package.store import PackageStore, StoreCorrupted
+from services.harness.package.store import PackageStore, StoreCorrupted
 
 log = logging.getLogger(__name__)
 

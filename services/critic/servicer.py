@@ -26,17 +26,17 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from services.critic import metrics
 from services.critic.config import CriticConfig
-from services.critic.package import diff as pkg_diff
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected
-from services.critic.package.loader import check_files, load_files, unload
-from services.critic.package.model import LoadedPackage
-from services.critic.package.probe import probe_import
+from services.harness.package import diff as pkg_diff
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected
+from services.harness.package.loader import check_files, load_files, unload
+from services.harness.package.model import LoadedPackage
+from services.harness.package.probe import probe_import
+from services.harness.report_proto import report_to_proto
 from services.critic.registry import HarnessRegistry, Resolved, parse_json
-from services.critic.runtime.engine import HarnessError, HarnessRuntime
-from services.env_worker.harness_loop import report_to_proto
-from zetta.codec import TensorDecodeError, decode, decode_observation, encode
-from zetta.v1 import critic_pb2, critic_pb2_grpc
+from services.harness.runtime.engine import HarnessError, HarnessRuntime
+from zetta_wire.codec import TensorDecodeError, decode, decode_observation, encode
+from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ _FILE_CHANGE = {
 }
 
 
-def _timed(method: str):  # type: ignore[no-untyped-def]
+def _timed(method: str):
     """Hop latency and status code of every unary call (services/common/grpc_errors.timed_unary)."""
     return timed_unary("critic", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
 
@@ -262,7 +262,7 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
                 raise ge.invalid(f"step {step}: {exc}") from None
             try:
                 decision = await asyncio.to_thread(runtime.step, obs, action, frozenset(request.step.milestones))
-            except Exception as exc:  # noqa: BLE001 - the runtime contains critic failures; anything else ends the stream
+            except Exception as exc:  # the runtime contains critic failures; anything else ends the stream
                 log.exception("harness runtime failed", extra={"fields": {"ref": resolved.ref, "step": step}})
                 raise ServiceError(grpc.StatusCode.INTERNAL, f"{resolved.ref}: runtime failed at step {step}: {exc}") from None
             response = decision_message(step, decision)

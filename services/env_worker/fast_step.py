@@ -203,7 +203,7 @@ class FastStepper:
             from services.env_worker.fast_step_kernel import compile_kernel
 
             return compile_kernel()
-        except Exception as exc:  # numba or libmujoco missing: the Python substeps are still exact
+        except Exception as exc:  # noqa: BLE001 - numba or libmujoco missing: the Python substeps are still exact
             log.warning("fast step kernel unavailable (%s); using Python substeps", exc)
             return None
 
@@ -272,7 +272,6 @@ class FastStepper:
                 f"environment got invalid action dimension -- expected {env.action_dim}, got {len(action)}"
             )
         env.timestep += 1
-        m, d = self._m, self._d
         robot_action = action[: self._robot.action_dim]
         arm_action = robot_action[: self._control_dim]
         grip_action = robot_action[self._control_dim :]

@@ -103,7 +103,6 @@ def substeps(
     qpos, qvel, ctrl, site_xpos, site_xmat, qfrc_bias, jacp, jacr, full_mass,
 ):  # pragma: no cover - compiled
     k = qvel_index.shape[0]
-    nv = qvel.shape[0]
     ee_pos = np.zeros(3)
     ee_ori_mat = np.zeros((3, 3))
     ee_pos_vel = np.zeros(3)

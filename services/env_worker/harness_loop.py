@@ -25,13 +25,14 @@ import numpy as np
 
 from services.common import grpc_errors as ge
 from services.env_worker import metrics
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected
-from services.critic.package.loader import load_files, unload
-from services.critic.package.model import LoadedPackage
-from services.critic.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
-from services.critic.runtime.orchestrator import POLICY
-from zetta.v1 import types_pb2
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected
+from services.harness.package.loader import load_files, unload
+from services.harness.package.model import LoadedPackage
+from services.harness.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
+from services.harness.runtime.orchestrator import POLICY
+from services.harness.report_proto import report_to_proto
+from zetta_wire.v1 import types_pb2
 
 #: A registry reference that names one immutable version (cacheable for the worker's life).
 _EXACT_REF = re.compile(r"^[^@]+@\d+$")
@@ -104,7 +105,7 @@ class HarnessSource:
             hit = self._by_ref.get(ref)
         if hit is not None:
             return hit
-        from zetta.v1 import critic_pb2, critic_pb2_grpc
+        from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
         if self._stub is None:
             self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(grpc.insecure_channel(self.critic_address))
@@ -203,25 +204,6 @@ class SlotHarness:
         out = types_pb2.HarnessReport()
         report_to_proto(self.finished or self.runtime.report, out)
         return out
-
-
-def report_to_proto(report: EpisodeReport, out: types_pb2.HarnessReport) -> None:
-    """Write an EpisodeReport into its proto message."""
-    out.harness, out.version, out.content_hash = report.harness, report.version, report.content_hash
-    out.policy_actions, out.recovery_actions = report.policy_actions, report.recovery_actions
-    for mode, n in report.actions_by_mode.items():
-        out.actions_by_mode[mode] = n
-    for iv in report.interventions:
-        out.interventions.add(
-            id=iv.id, kind=iv.kind, proposer=iv.proposer, evidence=iv.evidence, details=iv.details,
-            decision=iv.decision, start_step=iv.start_step, end_step=iv.end_step, outcome=iv.outcome,
-            actions=iv.actions,
-        )
-    for kind, n in report.interventions_by_kind.items():
-        out.interventions_by_kind[kind] = n
-    for d in report.disabled_critics:
-        out.disabled_critics.add(name=d.name, step=d.step, reason=d.reason)
-    out.proposals, out.rejected = report.proposals, report.rejected
 
 
 def bind(current: SlotHarness | None, package: LoadedPackage | None) -> SlotHarness | None:

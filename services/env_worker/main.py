@@ -10,13 +10,13 @@ from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.env_worker.config import EnvWorkerConfig
-from services.env_worker.families.base import UnknownFamilyError, get_family
+from services.env_worker.families import UnknownFamilyError, get_family
 from services.env_worker.membership import Membership
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.rendering import gl_backend_choice, gl_renderer_string, select_gl_backend
 from services.env_worker.servicer import EnvWorkerServicer
 from services.env_worker.slots import SlotTable
-from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc
+from zetta_wire.v1 import env_worker_pb2, env_worker_pb2_grpc
 
 log = logging.getLogger(__name__)
 

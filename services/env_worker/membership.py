@@ -14,9 +14,9 @@ from collections.abc import Callable, Sequence
 
 import grpc
 
-from services.common.server import CHANNEL_OPTIONS
+from zetta_wire.channel import CHANNEL_OPTIONS
 from services.env_worker.config import EnvWorkerConfig
-from zetta.v1 import registry_pb2, registry_pb2_grpc
+from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger(__name__)
 

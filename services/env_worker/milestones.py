@@ -39,13 +39,8 @@ from typing import Protocol
 
 import numpy as np
 
+from services.common.milestone_kinds import MAX_MILESTONES, STAGE_KINDS, TEMPLATE_NAMES, TEMPLATES
 from services.common.specs import TensorSpec
-
-#: Predicate kinds in the fixed order of the ``task_stage`` one-hot tensor.
-STAGE_KINDS: tuple[str, ...] = ("on", "in", "open", "close", "turnon", "turnoff", "up", "other")
-#: Milestone vectors in observations have this fixed length (zero-padded) so the schema does not
-#: depend on the task; LIBERO's longest goal (3 predicates of pick-and-place) needs 18.
-MAX_MILESTONES = 24
 
 #: How close (m) the grip site must come to an object's box (or a handle's) for reached(.).
 REACH_TOLERANCE = 0.03
@@ -56,38 +51,6 @@ ABOVE_MARGIN = 0.01
 #: toward(x, y): the horizontal distance to the target shrank to this fraction of the initial one.
 TOWARD_FRACTION = 0.5
 
-#: Milestone templates per template name: (kind, name pattern). ``{p}`` is the predicate name.
-TEMPLATES: dict[str, tuple[tuple[str, str], ...]] = {
-    "pick_place": (
-        ("reached", "reached({x})"),
-        ("grasped", "grasped({x})"),
-        ("lifted", "lifted({x})"),
-        ("above", "above({x},{y})"),
-        ("goal", "{p}({x},{y})"),
-        ("released", "released({x})"),
-    ),
-    "slide": (
-        ("reached", "reached({x})"),
-        ("contact", "contact({x})"),
-        ("toward", "toward({x},{y})"),
-        ("goal", "{p}({x},{y})"),
-        ("released", "released({x})"),
-    ),
-    "articulate": (
-        ("reached_handle", "reached({x}.handle)"),
-        ("contact_handle", "contact({x}.handle)"),
-        ("goal", "{p}({x})"),
-    ),
-    "lift": (
-        ("reached", "reached({x})"),
-        ("grasped", "grasped({x})"),
-        ("lifted", "lifted({x})"),
-        ("goal", "{p}({x})"),
-    ),
-    "predicate": (("goal", "{p}({args})"),),
-}
-#: Template names in the fixed order of the ``task_template`` one-hot tensor.
-TEMPLATE_NAMES: tuple[str, ...] = tuple(TEMPLATES)
 _ARTICULATED = ("open", "close", "turnon", "turnoff")
 
 
@@ -356,7 +319,7 @@ class MilestoneTracker:
         fetch = {"bbox": probe.bbox, "contact": probe.gripper_contact, "handle_bbox": probe.handle_bbox,
                  "handle_contact": probe.handle_contact}
 
-        def get(what: str, name: str):  # type: ignore[no-untyped-def]
+        def get(what: str, name: str):
             key = (what, name)
             try:
                 return cache[key]

@@ -28,10 +28,10 @@ import numpy as np
 
 from services.common import grpc_errors as ge
 from services.common.metrics import HOP_LATENCY
-from services.common.server import CHANNEL_OPTIONS
+from zetta_wire.channel import CHANNEL_OPTIONS
 from services.env_worker import metrics
-from zetta.codec import encode
-from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+from zetta_wire.codec import encode
+from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
 @dataclass(frozen=True)

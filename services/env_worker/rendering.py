@@ -39,7 +39,7 @@ Reflections
     Off changes what the policy sees, so the default stays on.
 
 This module imports MuJoCo only inside the renderer classes: importing it (as
-``families/base.py`` does) loads no simulator.
+the families' API does) loads no simulator.
 """
 
 from __future__ import annotations
@@ -208,7 +208,7 @@ class SceneRenderer:
     def __init__(self, model: Any, data: Any, width: int, height: int) -> None:
         import mujoco
 
-        GLContext = _gl_context_class()  # noqa: N806
+        GLContext = _gl_context_class()
         self.model, self.data = model, data
         vis = model.vis.global_
         # The offscreen buffer bounds every frame; grow it before the context is made.

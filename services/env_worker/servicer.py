@@ -22,18 +22,18 @@ from google.protobuf import json_format
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.spec_codec import spec_to_wire
-from zetta.codec import TensorDecodeError, decode, encode, encode_observation
+from zetta_wire.codec import TensorDecodeError, decode, encode, encode_observation
 from services.env_worker import harness_loop, metrics
-from services.env_worker.families.base import ResetError, ResetSpec, Slot, StepOutcome
+from services.env_worker.families import ResetError, ResetSpec, Slot, StepOutcome
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
 from services.env_worker.video import VideoError
-from zetta.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
+from zetta_wire.v1 import env_worker_pb2, env_worker_pb2_grpc, types_pb2
 
 log = logging.getLogger(__name__)
 
 
-def _timed(method: str):  # type: ignore[no-untyped-def]
+def _timed(method: str):
     """Env worker hop latency of every call (grpc_errors.timed_unary)."""
     return timed_unary("env_worker", method)
 
@@ -141,7 +141,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
     # ---- slot lifecycle -------------------------------------------------------------------
 
     @_timed("OpenSlots")
-    async def OpenSlots(self, request, context) -> env_worker_pb2.OpenSlotsResponse:  # noqa: N802
+    async def OpenSlots(self, request, context) -> env_worker_pb2.OpenSlotsResponse:
         config = json_format.MessageToDict(request.env_config)
         family = self.table.group(request.env_family, config)
         slots = self.table.bind(list(request.session_ids), request.env_family, family)
@@ -155,7 +155,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             for s in slots:
                 self._close(s.session_id)
             raise
-        except Exception as exc:  # noqa: BLE001 - a simulator failure is reported, not crashed on
+        except Exception as exc:  # a simulator failure is reported, not crashed on
             for s in slots:
                 self._close(s.session_id)
             raise ge.ServiceError(
@@ -181,7 +181,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         slot.env = env
 
     @_timed("CloseSlots")
-    async def CloseSlots(self, request, context) -> env_worker_pb2.CloseSlotsResponse:  # noqa: N802
+    async def CloseSlots(self, request, context) -> env_worker_pb2.CloseSlotsResponse:
         # Answer once the envs are closed, so that what closing finishes (an episode's video file)
         # is complete when the client hears the session is closed.
         closing = {sid: self._close(sid) for sid in request.session_ids}
@@ -213,7 +213,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
     # ---- episodes ---------------------------------------------------------------------------
 
     @_timed("ResetSlots")
-    async def ResetSlots(self, request, context) -> env_worker_pb2.ResetSlotsResponse:  # noqa: N802
+    async def ResetSlots(self, request, context) -> env_worker_pb2.ResetSlotsResponse:
         sids = list(request.session_ids)
         slots = self.table.get(sids)
         if len(request.specs) != len(sids):
@@ -270,7 +270,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         return result
 
     @_timed("ObserveSlots")
-    async def ObserveSlots(self, request, context) -> env_worker_pb2.ObserveSlotsResponse:  # noqa: N802
+    async def ObserveSlots(self, request, context) -> env_worker_pb2.ObserveSlotsResponse:
         slots = self.table.get(list(request.session_ids))
         return env_worker_pb2.ObserveSlotsResponse(results=[self._observe(s) for s in slots])
 
@@ -285,7 +285,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         return result
 
     @_timed("StepSlots")
-    async def StepSlots(self, request, context) -> env_worker_pb2.StepSlotsResponse:  # noqa: N802
+    async def StepSlots(self, request, context) -> env_worker_pb2.StepSlotsResponse:
         sids = list(request.session_ids)
         slots = self.table.get(sids)
         if len(request.actions) != len(sids):
@@ -337,7 +337,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             return await slot.run(self._execute, slot, chunk)
 
     @_timed("PolicyStepSlots")
-    async def PolicyStepSlots(self, request, context) -> env_worker_pb2.PolicyStepSlotsResponse:  # noqa: N802
+    async def PolicyStepSlots(self, request, context) -> env_worker_pb2.PolicyStepSlotsResponse:
         slots = self.table.get(list(request.session_ids))
         for s in slots:
             s.require_episode()
@@ -345,7 +345,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         return env_worker_pb2.PolicyStepSlotsResponse(results=results)
 
     @_timed("InferSlots")
-    async def InferSlots(self, request, context) -> env_worker_pb2.InferSlotsResponse:  # noqa: N802
+    async def InferSlots(self, request, context) -> env_worker_pb2.InferSlotsResponse:
         slots = self.table.get(list(request.session_ids))
         for s in slots:
             s.require_episode()
@@ -358,7 +358,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         )
 
     @_timed("RunEpisodes")
-    async def RunEpisodes(self, request, context) -> env_worker_pb2.RunEpisodesResponse:  # noqa: N802
+    async def RunEpisodes(self, request, context) -> env_worker_pb2.RunEpisodesResponse:
         sids = list(request.session_ids)
         slots = self.table.get(sids)
         if request.specs and len(request.specs) != len(sids):

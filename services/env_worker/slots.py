@@ -21,13 +21,7 @@ import numpy as np
 from services.common import grpc_errors as ge
 from services.common.specs import TensorSpec
 from services.env_worker import metrics
-from services.env_worker.families.base import (
-    ConfigError,
-    EnvFamily,
-    UnknownFamilyError,
-    canonical_config_key,
-    get_family,
-)
+from services.env_worker.families import ConfigError, EnvFamily, UnknownFamilyError, canonical_config_key, get_family
 
 T = TypeVar("T")
 

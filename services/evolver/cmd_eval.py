@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from services.evolver.cmd_evolve import add_run_args, run_config, tasks_of
+from services.evolver.cmd_common import add_run_args, publish_dir, run_config, tasks_of
 from services.evolver.evolve import evaluate_transfer
 from services.evolver.report import write_report
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
@@ -59,23 +59,10 @@ def _run(a: argparse.Namespace, store: RolloutStore, bars: Bars) -> tuple[list[d
     with endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency, store_dir / "stack", a.video) as ep:
         harness = a.harness
         if a.harness_dir is not None:
-            harness = _publish_dir(ep.registry, a.harness_dir)
+            harness = publish_dir(ep.registry, a.harness_dir)
         rows = evaluate_transfer(store, run_config(a, ep.gateway), a.suite, list(tasks_of(a.tasks)), harness, a.seeds,
                                  bars)
     return rows, harness
-
-
-def _publish_dir(registry: str, path: Path) -> str:
-    """Publish a package directory (a harness from another stack) and return its reference."""
-    import grpc
-
-    from services.critic.package.format import read_tree
-    from zetta.v1 import critic_pb2, critic_pb2_grpc
-
-    with grpc.insecure_channel(registry) as ch:
-        files = {k: v for k, v in read_tree(path).items() if k != "manifest.json"}
-        m = critic_pb2_grpc.HarnessRegistryServiceStub(ch).Publish(critic_pb2.PublishRequest(files=files), timeout=30)
-    return f"{m.manifest.name}@{m.manifest.version}"
 
 
 if __name__ == "__main__":

@@ -12,66 +12,21 @@ same command again to resume without losing finished rollouts.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY
 from services.evolver.cluster import ClusterParams
+from services.evolver.cmd_common import add_run_args, llm_from_env, run_config, tasks_of
 from services.evolver.eod import EODParams
 from services.evolver.evolve import EvolveConfig, Evolution
 from services.evolver.gate import GateParams
-from services.evolver.llm import LLMConfig
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
-from services.evolver.rollout import RunConfig
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore
-
-
-def add_run_args(p: argparse.ArgumentParser) -> None:
-    """Options shared by `zetta evolve` and `zetta eval`: the stack, the policy and the store."""
-    p.add_argument("--suite", required=True, help="LIBERO suite, e.g. libero_goal_task or libero_goal_swap")
-    p.add_argument("--tasks", required=True, help="comma-separated task indices or names, e.g. 6,9")
-    p.add_argument("--store", type=Path, default=None, help="rollout store directory (default runs/<command>-<suite>)")
-    p.add_argument("--report", type=Path, default=None, help="report directory (default <store>/report)")
-    p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
-    p.add_argument("--registry", default=None, help="critic service address of that stack")
-    p.add_argument("--model", default=DEFAULT_POLICY, help=f"the frozen policy (default {DEFAULT_POLICY})")
-    p.add_argument("--execute-steps", type=int, default=2, help="actions of each chunk executed per policy call")
-    p.add_argument("--max-steps", type=int, default=0, help="episode budget (default: the suite's)")
-    p.add_argument("--concurrency", type=int, default=2, help="episodes in flight")
-    p.add_argument("--env-workers", type=int, default=2, help="env workers of the local stack")
-    p.add_argument("--video", action="store_true", help="record every rollout's video (slower: renders each step)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-
-
-def tasks_of(text: str) -> tuple[str, ...]:
-    """'6,9' -> ('6', '9')."""
-    out = tuple(t.strip() for t in text.split(",") if t.strip())
-    if not out:
-        raise SystemExit("--tasks: give at least one task")
-    return out
-
-
-def run_config(args: argparse.Namespace, gateway: str) -> RunConfig:
-    """The rollout settings of the parsed arguments."""
-    return RunConfig(gateway=gateway, model=args.model, execute_steps=args.execute_steps, max_steps=args.max_steps,
-                     record_video=args.video, concurrency=args.concurrency)
-
-
-def llm_from_env() -> LLMConfig | None:
-    """The optional LLM backend: ZETTA_EVOLVER_LLM_URL (+ _MODEL, _API_KEY); unset means offline only."""
-    url = os.environ.get("ZETTA_EVOLVER_LLM_URL", "")
-    if not url:
-        return None
-    model = os.environ.get("ZETTA_EVOLVER_LLM_MODEL", "")
-    if not model:
-        raise SystemExit("ZETTA_EVOLVER_LLM_URL is set but ZETTA_EVOLVER_LLM_MODEL is not: name the model")
-    return LLMConfig(url, model, os.environ.get("ZETTA_EVOLVER_LLM_API_KEY", ""))
 
 
 def _export(argv: Sequence[str]) -> int:

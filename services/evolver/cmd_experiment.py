@@ -20,18 +20,16 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from services.common.policies import DEFAULT_POLICY
-from services.evolver.cmd_eval import _publish_dir
-from services.evolver.cmd_evolve import llm_from_env
+from services.evolver.cmd_common import llm_from_env, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def task_list(text: str) -> tuple[str, ...]:
@@ -114,7 +112,7 @@ def _transfer(out: Path, suites: Sequence[str], transfer_suite: str, seeds: int,
         store = RolloutStore(out / suite)
         latest = {a["task"]: a["ref"] for a in store.events("admitted") if a["suite"] == suite}
         for task, ref in sorted(latest.items()):
-            published = _publish_dir(registry, store.root / "harness" / ref)
+            published = publish_dir(registry, store.root / "harness" / ref)
             for rec in evaluate_transfer(tstore, run, transfer_suite, [task], published, seeds, bars):
                 tstore.record("transfer_source", {**rec, "source": f"{suite}/{task}"},
                               ident=f"{transfer_suite}/{task}/{published}")

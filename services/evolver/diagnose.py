@@ -21,7 +21,7 @@ from services.evolver.eod import EOD
 from services.evolver.trace import Trace
 
 LAYERS = ("eval", "critic", "state", "plan", "recovery", "param")
-#: Intervention outcomes (services/critic/runtime/engine.py) that mean the recovery did its job.
+#: Intervention outcomes (services/harness/runtime/engine.py) that mean the recovery did its job.
 REENTERED = frozenset({"reentered", "episode_end_success"})
 
 

@@ -83,7 +83,7 @@ class HarnessDraft:
     def window_frames(self) -> int:
         """The runtime window: ``window``, widened past every critic's integer parameters (frame
         counts: horizon, confirm, ...) so no critic is starved of the frames it looks back over."""
-        from services.critic.runtime.library import PREDICATES
+        from services.harness.runtime.library import PREDICATES
 
         frames = [int(v) + 1 for c in self.critics.values() if c.template in PREDICATES
                   for k, v in c.params.items() if k in PREDICATES[c.template].params

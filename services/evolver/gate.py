@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.store import Rollout
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 @dataclass(frozen=True)

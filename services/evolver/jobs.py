@@ -163,7 +163,7 @@ class JobManager:
         for s in STATES:
             metrics.JOBS.labels(s).set(sum(j.state == s for j in self.jobs.values()))
 
-    def _progress(self, job: Job, store: RolloutStore):  # type: ignore[no-untyped-def]
+    def _progress(self, job: Job, store: RolloutStore):
         def update(phase: str, done: int, total: int) -> None:
             if job.cancel.is_set():
                 raise Cancelled(f"job {job.job_id} cancelled")

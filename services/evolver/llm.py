@@ -106,7 +106,7 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
                members: Sequence[ReplayCase], successes: Sequence[Trace], params: SearchParams,
                max_edits: int) -> tuple[Candidate | None, str]:
     """The candidate an LLM patch makes, or None and why it was refused (the search's own checks)."""
-    from services.critic.runtime.library.schema import resolve
+    from services.harness.runtime.library.schema import resolve
 
     preds, _ = library()
     try:

@@ -19,7 +19,7 @@ from services.common.server import Registration, ServiceRunner, run_service
 from services.evolver.config import EvolverConfig
 from services.evolver.jobs import JobManager
 from services.evolver.servicer import EvolverServicer
-from zetta.v1 import evolver_pb2, evolver_pb2_grpc
+from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 
 
 def _reachable(address: str, what: str, variable: str) -> None:

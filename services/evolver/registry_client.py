@@ -11,7 +11,7 @@ from typing import Any
 import grpc
 
 from services.evolver.draft import HarnessDraft, render
-from zetta.v1 import critic_pb2, critic_pb2_grpc
+from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
 #: Codes worth a retry: the service was busy or restarting (publishing the same content twice is harmless).
 TRANSIENT = frozenset({grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNKNOWN})
@@ -40,7 +40,7 @@ class RegistryClient:
                 resp = self._stub.Publish(req, timeout=60)
                 return f"{resp.manifest.name}@{resp.manifest.version}"
             except grpc.RpcError as exc:
-                if exc.code() not in TRANSIENT or attempt == RETRIES - 1:  # type: ignore[attr-defined]
+                if exc.code() not in TRANSIENT or attempt == RETRIES - 1:
                     raise
                 time.sleep(1.0 + attempt)
         raise AssertionError("unreachable")

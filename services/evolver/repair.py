@@ -4,7 +4,7 @@ For a repair spec (diagnose.RepairSpec) the search proposes patches {C*, R*}: a 
 library predicate template, with at most ``max_param_edits`` parameters moved off their defaults
 by one grid step inside the template's declared range, paired with a plan: one of the library's
 typed playbooks meant for the kind of m* (multi-step recoveries such as acquire, or acquire and
-place in one intervention; services/critic/runtime/library/playbooks.py) or a recovery template
+place in one intervention; services/harness/runtime/library/playbooks.py) or a recovery template
 compatible with the evidence. A critic qualifies only if a diagnostic replay shows it fires within
 ``window`` steps of t_EOD on the medoid; critics are ranked by how many cluster members they also
 catch near their t_EOD, then by how rarely they fire on successful rollouts (false positives), then
@@ -45,13 +45,13 @@ NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})
 
 
 class LibraryUnavailable(RuntimeError):
-    """The harness library (services/critic/runtime/library) is not importable."""
+    """The harness library (services/harness/runtime/library) is not importable."""
 
 
 def playbooks() -> Mapping[str, Any]:
     """The installed library's typed playbooks (multi-step recoveries with budgets and stages)."""
     try:
-        from services.critic.runtime.library.playbooks import PLAYBOOKS
+        from services.harness.runtime.library.playbooks import PLAYBOOKS
     except ImportError:
         return {}
     return PLAYBOOKS
@@ -60,16 +60,16 @@ def playbooks() -> Mapping[str, Any]:
 def library() -> tuple[Mapping[str, Any], Mapping[str, Any]]:
     """The installed library's (PREDICATES, RECOVERIES) registries."""
     try:
-        from services.critic.runtime import library as lib
+        from services.harness.runtime import library as lib
     except ImportError as exc:
         raise LibraryUnavailable(f"the harness library cannot be imported: {exc}") from None
     preds = getattr(lib, "PREDICATES", None)
     recs = getattr(lib, "RECOVERIES", None)
     if preds is None:
-        from services.critic.runtime.library.predicates import PREDICATES as preds
+        from services.harness.runtime.library.predicates import PREDICATES as preds
     if recs is None:
         try:
-            from services.critic.runtime.library.recoveries import RECOVERIES as recs
+            from services.harness.runtime.library.recoveries import RECOVERIES as recs
         except ImportError as exc:
             raise LibraryUnavailable(f"the harness library has no recoveries registry: {exc}") from None
     return preds, recs
@@ -201,7 +201,7 @@ def recovery_options(evidence: str, m_star: str, recoveries: Mapping[str, Any], 
     order: the library playbooks meant for m*'s kind that can start from what the evidence implies
     about the grasp (``holding``; the longest first: they carry the episode furthest), then up to
     ``singles`` recovery templates compatible with the evidence."""
-    from services.critic.runtime.library.playbooks import serving
+    from services.harness.runtime.library.playbooks import serving
 
     kind = stage_of(m_star)
     books = [plan_of(b.name) for b in serving(kind[0], holding)] if kind else []
@@ -270,7 +270,7 @@ def stage_of(m_star: str) -> tuple[str, ...]:
     """The kind of the cluster's first missing milestone ("on(a,b)" -> ("on",)): the orchestrator
     grants the recovery only while that kind of milestone is the one missing, a task-independent
     condition that transfers to other tasks."""
-    from services.critic.runtime.orchestrator import milestone_kind
+    from services.harness.runtime.orchestrator import milestone_kind
 
     return (milestone_kind(m_star),) if m_star and m_star != "<none>" else ()
 
@@ -294,7 +294,7 @@ def _templates_for(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, A
 def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | None:
     """Why a patch (from the search or an LLM) is refused, or None: the templates exist, the
     parameters are in range, the patch is bounded."""
-    from services.critic.runtime.library.schema import ParamError, resolve
+    from services.harness.runtime.library.schema import ParamError, resolve
 
     preds, recs = library()
     if cand.critic.template not in preds:
@@ -311,7 +311,7 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
         resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
         for part in parts:
             args = cand.plan.args.get(part, {}) if len(parts) > 1 else cand.plan.args
-            resolve(recs[part].params, args, part)  # type: ignore[arg-type]
+            resolve(recs[part].params, args, part)
     except ParamError as exc:
         return str(exc)
     edits = cand.apply(parent).edits_from(parent)
@@ -322,9 +322,9 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
 
 def build_error(draft: HarnessDraft) -> str | None:
     """Why the draft's package would not load or build a runtime (the critic service's own checks), or None."""
-    from services.critic.package.errors import PackageRejected
-    from services.critic.package.loader import load_files, unload
-    from services.critic.runtime.engine import HarnessError, HarnessRuntime
+    from services.harness.package.errors import PackageRejected
+    from services.harness.package.loader import load_files, unload
+    from services.harness.runtime.engine import HarnessError, HarnessRuntime
 
     try:
         pkg = load_files(render(draft))

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from services.critic.runtime.api import Frame, Window
+from services.harness.runtime.api import Frame, Window
 from services.evolver.trace import Trace
 
 #: Frames a replayed critic sees at once (the runtime's window is at least this long).

@@ -15,10 +15,10 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from services.evolver.store import RolloutStore  # noqa: E402
-from zetta.stats import wilson  # noqa: E402
+from services.evolver.store import RolloutStore
+from zetta_wire.stats import wilson
 
 
 def _rate(s: int, n: int) -> str:

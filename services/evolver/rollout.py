@@ -22,9 +22,9 @@ import grpc
 from services.common.policies import DEFAULT_POLICY
 from services.evolver.store import EpisodeKey, Outcome, Rollout, RolloutStore
 from services.evolver.trace import TraceRecorder
-from zetta.client import Gateway, SessionGroup, ZettaError
-from zetta.codec import decode, decode_observation
-from zetta.v1 import gateway_pb2, types_pb2
+from zetta import Gateway, SessionGroup, ZettaError
+from zetta_wire.codec import decode, decode_observation
+from zetta_wire.v1 import gateway_pb2, types_pb2
 
 #: Status codes that mean the infrastructure, not the policy, failed the attempt (a worker or the
 #: simulator crashed or was unreachable, a lease ran out, a deadline passed under load).

@@ -10,7 +10,7 @@ from services.common import grpc_errors as ge
 from services.evolver.evolve import EvolveConfig
 from services.evolver.jobs import Job, JobError, JobManager, success_counts
 from services.evolver.store import RolloutStore
-from zetta.v1 import evolver_pb2, evolver_pb2_grpc
+from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 
 _STATE = {"pending": evolver_pb2.EVOLUTION_STATE_PENDING, "running": evolver_pb2.EVOLUTION_STATE_RUNNING,
           "succeeded": evolver_pb2.EVOLUTION_STATE_SUCCEEDED, "failed": evolver_pb2.EVOLUTION_STATE_FAILED,
@@ -58,28 +58,28 @@ class EvolverServicer(evolver_pb2_grpc.EvolverServiceServicer):
     def __init__(self, jobs: JobManager) -> None:
         self.jobs = jobs
 
-    async def _call(self, fn, *args):  # type: ignore[no-untyped-def]
+    async def _call(self, fn, *args):
         try:
             return await asyncio.to_thread(fn, *args)
         except JobError as exc:
             raise ge.ServiceError(_CODES[exc.kind], str(exc)) from None
 
     @ge.timed_unary("evolver", "StartEvolution")
-    async def StartEvolution(self, request, context) -> evolver_pb2.StartEvolutionResponse:  # noqa: N802
+    async def StartEvolution(self, request, context) -> evolver_pb2.StartEvolutionResponse:
         job = await self._call(self.jobs.start, request.job_id, _spec_dict(request.spec))
         return evolver_pb2.StartEvolutionResponse(status=await asyncio.to_thread(status_of, job))
 
     @ge.timed_unary("evolver", "GetEvolution")
-    async def GetEvolution(self, request, context) -> evolver_pb2.GetEvolutionResponse:  # noqa: N802
+    async def GetEvolution(self, request, context) -> evolver_pb2.GetEvolutionResponse:
         job = await self._call(self.jobs.get, request.job_id)
         return evolver_pb2.GetEvolutionResponse(status=await asyncio.to_thread(status_of, job))
 
     @ge.timed_unary("evolver", "ListEvolutions")
-    async def ListEvolutions(self, request, context) -> evolver_pb2.ListEvolutionsResponse:  # noqa: N802
+    async def ListEvolutions(self, request, context) -> evolver_pb2.ListEvolutionsResponse:
         jobs = list(self.jobs.jobs.values())
         return evolver_pb2.ListEvolutionsResponse(jobs=[await asyncio.to_thread(status_of, j) for j in jobs])
 
     @ge.timed_unary("evolver", "CancelEvolution")
-    async def CancelEvolution(self, request, context) -> evolver_pb2.CancelEvolutionResponse:  # noqa: N802
+    async def CancelEvolution(self, request, context) -> evolver_pb2.CancelEvolutionResponse:
         job = await self._call(self.jobs.cancel, request.job_id)
         return evolver_pb2.CancelEvolutionResponse(status=await asyncio.to_thread(status_of, job))

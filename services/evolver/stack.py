@@ -1,6 +1,6 @@
 """Where the evolver's rollouts run: a stack that is already up, or a local one it starts and stops.
 
-The local stack is the real one (zetta.local_stack.LocalStack): Redis, gateway, critic service
+The local stack is the real one (services.ops.local_stack.LocalStack): Redis, gateway, critic service
 (harness registry), one policy worker serving the frozen policy and N env workers that load
 harness versions from the critic service. Env workers are started after the critic service so
 they can be given its address.
@@ -35,7 +35,7 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
             raise SystemExit("--gateway needs --registry too (the critic service that serves harness versions)")
         yield Endpoints(gateway, registry)
         return
-    from zetta.local_stack import LocalStack
+    from services.ops.local_stack import LocalStack
 
     # Absolute: redis-server changes into its --dir before opening its --logfile.
     workdir = workdir.resolve()

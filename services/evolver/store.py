@@ -249,8 +249,8 @@ class RolloutStore:
     def invalid_attempts(self, key: EpisodeKey | None = None) -> list[tuple[str, str]]:
         """(key, reason) of the logged invalid attempts, of one key or all."""
         if key is None:
-            return [tuple(r) for r in self._db.execute("SELECT key, reason FROM invalid ORDER BY id")]  # type: ignore[misc]
-        return [tuple(r) for r in self._db.execute("SELECT key, reason FROM invalid WHERE key=? ORDER BY id",  # type: ignore[misc]
+            return [tuple(r) for r in self._db.execute("SELECT key, reason FROM invalid ORDER BY id")]
+        return [tuple(r) for r in self._db.execute("SELECT key, reason FROM invalid WHERE key=? ORDER BY id",
                                                     (str(key),))]
 
     def query(self, suite: str | None = None, task: str | None = None, harness: str | None = None,
@@ -297,7 +297,7 @@ class RolloutStore:
 
     def rejected(self) -> list[tuple[str, str, str]]:
         """(fingerprint, cluster, reason) of every rejected candidate."""
-        return [tuple(r) for r in self._db.execute("SELECT fingerprint, cluster, reason FROM rejected")]  # type: ignore[misc]
+        return [tuple(r) for r in self._db.execute("SELECT fingerprint, cluster, reason FROM rejected")]
 
     def record(self, kind: str, body: dict[str, Any], ident: str = "") -> None:
         """Append an evolution event (round result, admitted version, cluster version curve).

@@ -15,7 +15,7 @@ from services.gateway.registry import Registry
 from services.gateway.registry_servicer import WorkerRegistryServicer
 from services.gateway.servicer import GatewayServicer
 from services.gateway.workers import WorkerPool
-from zetta.v1 import gateway_pb2, gateway_pb2_grpc, registry_pb2, registry_pb2_grpc
+from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 
 async def main() -> None:

@@ -53,7 +53,7 @@ class Monitor:
                 if loop.time() - last_gauges >= GAUGE_PERIOD_S:
                     await self.update_gauges()
                     last_gauges = loop.time()
-            except Exception:  # noqa: BLE001 - a Redis hiccup must not end the monitor
+            except Exception:  # a Redis hiccup must not end the monitor
                 log.exception("monitor tick failed")
             await asyncio.sleep(self.cfg.monitor_interval_ms / 1000)
 

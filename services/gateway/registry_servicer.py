@@ -9,7 +9,7 @@ from services.common.grpc_errors import error_boundary
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import Registry
 from services.gateway.workers import WorkerPool
-from zetta.v1 import registry_pb2, registry_pb2_grpc
+from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +23,7 @@ class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
         self.cfg = config
 
     @error_boundary
-    async def RegisterWorker(self, request, context) -> registry_pb2.RegisterWorkerResponse:  # noqa: N802
+    async def RegisterWorker(self, request, context) -> registry_pb2.RegisterWorkerResponse:
         if not request.worker_id or not request.address:
             raise ge.invalid("worker_id and address are required")
         if request.slots < 1:
@@ -47,12 +47,12 @@ class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
         return registry_pb2.RegisterWorkerResponse(heartbeat_interval_ms=self.cfg.heartbeat_interval_ms, session_ids=kept)
 
     @error_boundary
-    async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:  # noqa: N802
+    async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:
         known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
         return registry_pb2.HeartbeatResponse(known=known)
 
     @error_boundary
-    async def DeregisterWorker(self, request, context) -> registry_pb2.DeregisterWorkerResponse:  # noqa: N802
+    async def DeregisterWorker(self, request, context) -> registry_pb2.DeregisterWorkerResponse:
         lost = await self.registry.deregister(request.worker_id)
         log.info("worker deregistered", extra={"fields": {"worker": request.worker_id, "lost_sessions": len(lost)}})
         return registry_pb2.DeregisterWorkerResponse()

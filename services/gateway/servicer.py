@@ -20,7 +20,7 @@ from google.protobuf import json_format
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
-from zetta.codec import TensorDecodeError, dtype_from_wire
+from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
@@ -34,7 +34,7 @@ from services.gateway.registry import (
     SessionRecord,
 )
 from services.gateway.workers import WorkerPool
-from zetta.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
+from zetta_wire.v1 import env_worker_pb2, gateway_pb2, gateway_pb2_grpc, types_pb2
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -49,7 +49,7 @@ _STATE_ENUM = {
 MAX_CHUNK = 256
 
 
-def _timed(method: str):  # type: ignore[no-untyped-def]
+def _timed(method: str):
     """Gateway hop latency and status code of every call (grpc_errors.timed_unary)."""
     return timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
 
@@ -144,7 +144,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     # ---- session management ---------------------------------------------------------------
 
     @_timed("CreateSessions")
-    async def CreateSessions(self, request: gateway_pb2.CreateSessionsRequest, context) -> gateway_pb2.CreateSessionsResponse:  # noqa: N802
+    async def CreateSessions(self, request: gateway_pb2.CreateSessionsRequest, context) -> gateway_pb2.CreateSessionsResponse:
         family = request.env_family.strip()
         if not family:
             raise ge.invalid("env_family is empty; name a family such as 'libero' or 'robosuite'")
@@ -227,7 +227,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                     log.warning("could not close slots after a failed creation", extra={"fields": {"worker": worker}})
 
     @_timed("RenewSessions")
-    async def RenewSessions(self, request, context) -> gateway_pb2.RenewSessionsResponse:  # noqa: N802
+    async def RenewSessions(self, request, context) -> gateway_pb2.RenewSessionsResponse:
         records = await self._resolve(list(request.session_ids))
         if request.lease_seconds < 0 or request.lease_seconds > self.cfg.max_lease_seconds:
             raise ge.invalid(f"lease_seconds must be between 0 and {self.cfg.max_lease_seconds}, got {request.lease_seconds}")
@@ -248,7 +248,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         return gateway_pb2.RenewSessionsResponse(sessions=out)
 
     @_timed("CloseSessions")
-    async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:  # noqa: N802
+    async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:
         closed, already = await self.close_sessions(list(dict.fromkeys(request.session_ids)), "closed by client")
         return gateway_pb2.CloseSessionsResponse(closed_session_ids=closed, already_closed_session_ids=already)
 
@@ -275,12 +275,12 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     # ---- environment control ----------------------------------------------------------------
 
     @_timed("Reset")
-    async def Reset(self, request, context) -> gateway_pb2.ResetResponse:  # noqa: N802
+    async def Reset(self, request, context) -> gateway_pb2.ResetResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
         specs = self._specs_for(len(sids), request.specs or [types_pb2.ResetSpec()], "specs")
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.ResetSlotsRequest(
                 session_ids=[sids[i] for i in idx], specs=[specs[i] for i in idx]
             )
@@ -289,11 +289,11 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         return gateway_pb2.ResetResponse(results=await self._fan_out(records, call))
 
     @_timed("Observe")
-    async def Observe(self, request, context) -> gateway_pb2.ObserveResponse:  # noqa: N802
+    async def Observe(self, request, context) -> gateway_pb2.ObserveResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.ObserveSlotsRequest(session_ids=[sids[i] for i in idx])
             return (await stub.ObserveSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
 
@@ -327,13 +327,13 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 )
 
     @_timed("ActionStep")
-    async def ActionStep(self, request, context) -> gateway_pb2.ActionStepResponse:  # noqa: N802
+    async def ActionStep(self, request, context) -> gateway_pb2.ActionStepResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
         self._check_actions(records, request.actions)
         actions = list(request.actions)
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.StepSlotsRequest(session_ids=[sids[i] for i in idx], actions=[actions[i] for i in idx])
             return (await stub.StepSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
 
@@ -342,36 +342,36 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     # ---- policy execution -----------------------------------------------------------------
 
     @_timed("PolicyStep")
-    async def PolicyStep(self, request, context) -> gateway_pb2.PolicyStepResponse:  # noqa: N802
+    async def PolicyStep(self, request, context) -> gateway_pb2.PolicyStepResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
             return (await stub.PolicyStepSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
 
         return gateway_pb2.PolicyStepResponse(results=await self._fan_out(records, call))
 
     @_timed("PolicyInfer")
-    async def PolicyInfer(self, request, context) -> gateway_pb2.PolicyInferResponse:  # noqa: N802
+    async def PolicyInfer(self, request, context) -> gateway_pb2.PolicyInferResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.InferSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
             return (await stub.InferSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
 
         return gateway_pb2.PolicyInferResponse(results=await self._fan_out(records, call))
 
     @_timed("RunEpisode")
-    async def RunEpisode(self, request, context) -> gateway_pb2.RunEpisodeResponse:  # noqa: N802
+    async def RunEpisode(self, request, context) -> gateway_pb2.RunEpisodeResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
         specs = self._specs_for(len(sids), request.specs, "specs") if request.specs else []
         if request.max_steps < 0:
             raise ge.invalid(f"max_steps must be >= 0, got {request.max_steps}")
 
-        async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
+        async def call(stub, idx: list[int]):
             req = env_worker_pb2.RunEpisodesRequest(
                 session_ids=[sids[i] for i in idx],
                 specs=[specs[i] for i in idx] if specs else [],
@@ -382,7 +382,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
         return gateway_pb2.RunEpisodeResponse(summaries=await self._fan_out(records, call))
 
-    async def StepStream(self, request_iterator, context):  # noqa: N802
+    async def StepStream(self, request_iterator, context):
         """One stream per session; every message is checked against the registry like a call."""
         bound = ""
         hist = HOP_LATENCY.labels("gateway", "StepStream")
@@ -436,7 +436,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     # ---- introspection ----------------------------------------------------------------------
 
     @_timed("ListSessions")
-    async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:  # noqa: N802
+    async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:
         wanted = set(request.states)
         sids = await self.registry.all_session_ids()
         out = []
@@ -464,7 +464,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         return gateway_pb2.ListSessionsResponse(sessions=out)
 
     @_timed("ListWorkers")
-    async def ListWorkers(self, request, context) -> gateway_pb2.ListWorkersResponse:  # noqa: N802
+    async def ListWorkers(self, request, context) -> gateway_pb2.ListWorkersResponse:
         return gateway_pb2.ListWorkersResponse(
             workers=[
                 gateway_pb2.WorkerInfo(

@@ -7,9 +7,9 @@ import asyncio
 import grpc
 
 from services.common import grpc_errors as ge
-from services.common.server import CHANNEL_OPTIONS
+from zetta_wire.channel import CHANNEL_OPTIONS
 from services.gateway.registry import Registry
-from zetta.v1 import env_worker_pb2_grpc
+from zetta_wire.v1 import env_worker_pb2_grpc
 
 
 class WorkerPool:

@@ -19,7 +19,7 @@ BASE_CONFIGS: dict[str, dict[str, Any]] = {"libero": {"suite": "libero_goal"}, "
 
 def supplied_schema(family: str, specs: Sequence[TensorSpec]) -> dict[str, TensorSpec]:
     """The observation schema ``family`` gives a session created to render what ``specs`` read."""
-    from services.env_worker.families.base import get_family
+    from services.env_worker.families import get_family
 
     if family not in BASE_CONFIGS:
         raise ConfigError(f"ZETTA_INPUT_CHECK_FAMILY: {family!r} is not one of {sorted(BASE_CONFIGS)}")

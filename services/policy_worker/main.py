@@ -14,7 +14,7 @@ from services.policy_worker.metrics import PrometheusObserver
 from services.policy_worker.models.base import load_model
 from services.policy_worker.scheduler import BatchScheduler
 from services.policy_worker.servicer import PolicyWorkerServicer
-from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
 async def main() -> None:

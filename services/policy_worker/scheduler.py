@@ -204,25 +204,25 @@ class _GuardedObserver:
     def on_batch(self, model: str, size: int, compute_seconds: float) -> None:
         try:
             self._inner.on_batch(model, size, compute_seconds)
-        except Exception:
+        except Exception:  # noqa: BLE001 - an observer must never fail a batch
             self._failed("on_batch")
 
     def on_queue_wait(self, model: str, seconds: float) -> None:
         try:
             self._inner.on_queue_wait(model, seconds)
-        except Exception:
+        except Exception:  # noqa: BLE001 - an observer must never fail a batch
             self._failed("on_queue_wait")
 
     def on_queue_depth(self, model: str, depth: int) -> None:
         try:
             self._inner.on_queue_depth(model, depth)
-        except Exception:
+        except Exception:  # noqa: BLE001 - an observer must never fail a batch
             self._failed("on_queue_depth")
 
     def on_reject(self, model: str, reason: str) -> None:
         try:
             self._inner.on_reject(model, reason)
-        except Exception:
+        except Exception:  # noqa: BLE001 - an observer must never fail a batch
             self._failed("on_reject")
 
 

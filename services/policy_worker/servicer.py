@@ -18,7 +18,7 @@ from services.common.grpc_errors import ServiceError, error_boundary
 from services.common.metrics import HOP_LATENCY
 from services.common.specs import SpecError
 from services.common.spec_codec import spec_to_wire
-from zetta.codec import TensorDecodeError, decode, encode
+from zetta_wire.codec import TensorDecodeError, decode, encode
 from services.policy_worker.models.base import ACTION_SPEC, PolicyModel
 from services.policy_worker.scheduler import (
     BatchScheduler,
@@ -27,7 +27,7 @@ from services.policy_worker.scheduler import (
     QueueFullError,
     SchedulerClosedError,
 )
-from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
 class PolicyWorkerServicer(policy_worker_pb2_grpc.PolicyWorkerServiceServicer):
@@ -77,12 +77,12 @@ class PolicyWorkerServicer(policy_worker_pb2_grpc.PolicyWorkerServiceServicer):
             raise ge.unavailable(f"policy worker is shutting down: {exc}") from None
         except ValueError as exc:
             raise ge.invalid(f"item {item.token}: {exc}") from None
-        except Exception as exc:  # noqa: BLE001 - a model failure is the caller's INTERNAL error
+        except Exception as exc:  # a model failure is the caller's INTERNAL error
             raise ServiceError(grpc.StatusCode.INTERNAL, f"model {item.model!r} failed: {exc}") from exc
         return policy_worker_pb2.InferOutput(token=item.token, actions=encode(actions), model=item.model)
 
     @error_boundary
-    async def Infer(self, request, context) -> policy_worker_pb2.InferResponse:  # noqa: N802
+    async def Infer(self, request, context) -> policy_worker_pb2.InferResponse:
         start = time.perf_counter()
         if not request.items:
             raise ge.invalid("items is empty")
@@ -99,7 +99,7 @@ class PolicyWorkerServicer(policy_worker_pb2_grpc.PolicyWorkerServiceServicer):
         return policy_worker_pb2.InferResponse(outputs=outputs)
 
     @error_boundary
-    async def ListModels(self, request, context) -> policy_worker_pb2.ListModelsResponse:  # noqa: N802
+    async def ListModels(self, request, context) -> policy_worker_pb2.ListModelsResponse:
         resp = policy_worker_pb2.ListModelsResponse()
         for name, model in self.models.items():
             info = resp.models.add(name=name, chunk_size=model.chunk_size, is_default=name == self.default_model)

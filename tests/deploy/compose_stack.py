@@ -32,7 +32,7 @@ from typing import Any
 import yaml
 
 from tests.deploy.deployfiles import COMPOSE, ROOT, environment, image_config, load_compose, tool
-from zetta.local_stack import find_redis_server
+from services.ops.local_stack import find_redis_server
 
 #: Image variables that describe the container's filesystem, not the service: the test keeps its own.
 IMAGE_ONLY_ENV = {"PATH", "VIRTUAL_ENV", "HOME", "XDG_CACHE_HOME", "MPLCONFIGDIR", "NUMBA_CACHE_DIR", "HF_HOME",
@@ -290,7 +290,7 @@ class ComposeStack:
 
 def fetch(url: str, timeout: float = 5) -> str:
     """GET a URL (only ever a loopback address here)."""
-    with urllib.request.urlopen(url, timeout=timeout) as resp:  # noqa: S310 - loopback only
+    with urllib.request.urlopen(url, timeout=timeout) as resp:  # loopback only
         return resp.read().decode()
 
 

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from zetta import Gateway, ZettaError
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 LIFT: dict[str, Any] = {"env_name": "Lift", "max_steps": 500}
 ZEROS = np.zeros(7, np.float32)

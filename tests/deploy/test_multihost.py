@@ -151,7 +151,7 @@ class Hosts:
         return env
 
     def start(self, name: str, host: str, argv: list[str], **settings: str) -> None:
-        log = open(self.workdir / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        log = open(self.workdir / f"{name}.log", "ab")  # closed with the process
         self.procs[name] = subprocess.Popen(
             ["ip", "netns", "exec", self.net.ns(host), *argv], env=self.env(**settings), cwd=ROOT,
             stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
@@ -228,7 +228,7 @@ def hosts() -> Iterator[Hosts]:
     try:
         net.create()
         a = net.ip(1)
-        from zetta.local_stack import find_redis_server
+        from services.ops.local_stack import find_redis_server
 
         hosts.start("redis", "a", [find_redis_server(), "--bind", "127.0.0.1", "--port", "6379", "--save", "",
                                    "--appendonly", "no", "--dir", str(hosts.workdir)])

@@ -23,9 +23,9 @@ import pytest
 from services.env_worker.families.robocasa import unavailable_reason as robocasa_unavailable_reason
 from tests.conftest import HEARTBEAT_TIMEOUT_MS, LIFT, eventually, free_slots
 from zetta import Gateway, SessionGroup, ZettaError
-from zetta.codec import encode
-from zetta.local_stack import LocalStack
-from zetta.v1 import gateway_pb2, types_pb2
+from zetta_wire.codec import encode
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import gateway_pb2, types_pb2
 
 ROOT = Path(__file__).resolve().parents[2]
 ZEROS = np.zeros(7, np.float32)

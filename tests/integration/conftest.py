@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from zetta.local_stack import LocalStack
+from services.ops.local_stack import LocalStack
 
 
 @pytest.fixture(scope="session")

@@ -16,9 +16,9 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from tests.conftest import LIBERO_CREAM, LIFT, eventually, free_slots
 from zetta import Gateway, SyncGateway, ZettaError
-from zetta.codec import decode_observation
-from zetta.local_stack import LocalStack
-from zetta.v1 import gateway_pb2, types_pb2
+from zetta_wire.codec import decode_observation
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import gateway_pb2, types_pb2
 
 #: Tensors the shipped scripted policy needs; both families must publish them.
 POLICY_INPUTS = {"robot0_eef_pos", "robot0_gripper_qpos", "task_object_pos", "task_target_pos", "task_grasped"}

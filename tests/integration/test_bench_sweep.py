@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from zetta import bench_report
-from zetta import bench_sweep as bs
-from zetta.cli import main as zetta_main
-from zetta.local_stack import LocalStack
+from bench import bench_report
+from bench import bench_sweep as bs
+from services.ops.cli import main as zetta_main
+from services.ops.local_stack import LocalStack
 
 SCRIPTED = "scripted-pick-place"  # the shared stack's policy worker serves it
 
@@ -224,7 +224,7 @@ async def test_resource_sharing_switch(sharing: bool) -> None:
     from services.env_worker.policy_client import PolicyClient
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import SlotTable
-    from zetta.v1 import env_worker_pb2
+    from zetta_wire.v1 import env_worker_pb2
 
     cfg = EnvWorkerConfig.from_env({"ZETTA_GATEWAY_ADDRESS": "g:1", "ZETTA_RESOURCE_SHARING": str(sharing).lower()})
     assert cfg.resource_sharing is sharing

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from services.common.cpus import parse_cpu_list, usable_cpus
-from zetta.local_stack import LocalStack
+from services.ops.local_stack import LocalStack
 
 
 def _thread_cpus(pid: int) -> dict[int, frozenset[int]]:

@@ -23,9 +23,9 @@ import redis
 
 from tests.unit.test_harness_package import example_files, write_tree
 from zetta import ZettaError
-from zetta import harness as zh
-from zetta.local_stack import LocalStack
-from zetta.v1 import critic_pb2, critic_pb2_grpc
+from services.ops import harness as zh
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,8 @@ import pytest
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from services.evolver.stack import Endpoints, endpoints
-from zetta.local_stack import free_port, wait_healthy
-from zetta.v1 import evolver_pb2, evolver_pb2_grpc
+from services.ops.local_stack import free_port, wait_healthy
+from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 
 ROOT = Path(__file__).resolve().parents[2]
 TASK = "put_the_cream_cheese_in_the_bowl"

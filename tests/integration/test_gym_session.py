@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import zetta.gym  # noqa: F401 - registers zetta/Session-v0
+import zetta.gym  # registers zetta/Session-v0
 from tests.conftest import LIBERO_CREAM
 from zetta import SyncGateway, ZettaError
-from zetta.local_stack import LocalStack
-from zetta.v1 import types_pb2
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import types_pb2
 
 
 def test_session_env_passes_the_checker_and_replays_keys(stack: LocalStack) -> None:

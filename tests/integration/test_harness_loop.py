@@ -19,8 +19,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from tests.conftest import LIFT
 from zetta import Gateway
 from zetta.client import ZettaError
-from zetta.harness import HarnessRegistry
-from zetta.local_stack import LocalStack
+from services.ops.harness import HarnessRegistry
+from services.ops.local_stack import LocalStack
 
 SKILL = """+++
 name = "loop-test"
@@ -43,7 +43,7 @@ test harness
 """
 
 CRITICS = '''
-from services.critic.runtime.api import Proposal
+from services.harness.runtime.api import Proposal
 
 
 def critic_late(window, params):

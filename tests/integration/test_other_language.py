@@ -18,8 +18,8 @@ from pathlib import Path
 import grpc
 import pytest
 
-from zetta.local_stack import LocalStack
-from zetta.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
+from services.ops.local_stack import LocalStack
+from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "grpcurl_session.sh"

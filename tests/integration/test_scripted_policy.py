@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ResetSpec, get_family
+from services.env_worker.families import ResetSpec, get_family
 from services.policy_worker.models.scripted import ScriptedPickPlacePolicy
 
 

@@ -54,8 +54,8 @@ def test_a_revision_runs_from_its_own_tree(tmp_path: Path) -> None:
     assert envs["B"] == {} and envs["A"]["X"] == "1"
     tree = tmp_path / "A" / "tree"
     assert (tree / "services" / "env_worker" / "slots.py").exists()
-    assert list((tree / "clients" / "python" / "zetta" / "v1").glob("*_pb2.py"))
-    probe = "import services, zetta.v1.env_worker_pb2 as pb; print(services.__file__); print(pb.__file__)"
+    assert list((tree / "clients" / "python" / "zetta_wire" / "v1").glob("*_pb2.py"))
+    probe = "import services, zetta_wire.v1.env_worker_pb2 as pb; print(services.__file__); print(pb.__file__)"
     out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env={**envs["A"], "PATH": "/usr/bin:/bin"},
                          capture_output=True, text=True, check=True).stdout.split()
     assert all(Path(line).is_relative_to(tree) for line in out), out

@@ -11,7 +11,7 @@ import pytest
 
 from services.common.spec_codec import spec_from_wire, spec_to_wire
 from services.common.specs import WIRE_DTYPES, SpecError, TensorSpec
-from zetta.codec import (
+from zetta_wire.codec import (
     TensorDecodeError,
     decode,
     decode_observation,
@@ -20,7 +20,7 @@ from zetta.codec import (
     encode,
     encode_observation,
 )
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 _WIRE = {
     "float32": types_pb2.DTYPE_FLOAT32, "float64": types_pb2.DTYPE_FLOAT64, "float16": types_pb2.DTYPE_FLOAT16,

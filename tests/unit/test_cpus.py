@@ -13,7 +13,7 @@ from services.common.config import ConfigError
 from services.common.cpus import cgroup_cpu_quota, format_cpu_list, parse_cpu_list, split_cpus, usable_cpus
 from services.env_worker.config import EnvWorkerConfig
 from services.policy_worker.config import PolicyWorkerConfig
-from zetta.local_stack import LocalStack
+from services.ops.local_stack import LocalStack
 
 
 def _affinity() -> int:

@@ -31,8 +31,8 @@ def test_the_check_catches_a_privileged_model() -> None:
 def test_every_default_names_the_image_vla() -> None:
     from services.evolver.rollout import RunConfig
     from services.policy_worker.config import PolicyWorkerConfig
-    from zetta.bench_sweep import DEFAULT_MODEL
-    from zetta.local_stack import LocalStack
+    from bench.bench_sweep import DEFAULT_MODEL
+    from services.ops.local_stack import LocalStack
 
     assert PolicyWorkerConfig.from_env({}).models == (DEFAULT_POLICY,)
     assert LocalStack().models == (DEFAULT_POLICY,)

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.critic.package.loader import load_files
-from services.critic.runtime.engine import HarnessRuntime
-from services.critic.runtime.library import PREDICATES, RECOVERIES
-from services.critic.runtime.library.playbooks import PLAYBOOKS, check_playbooks, serving
+from services.harness.package.loader import load_files
+from services.harness.runtime.engine import HarnessRuntime
+from services.harness.runtime.library import PREDICATES, RECOVERIES
+from services.harness.runtime.library.playbooks import PLAYBOOKS, check_playbooks, serving
 from services.evolver.diagnose import Case, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, render
 from services.evolver.eod import t_eod

@@ -10,9 +10,9 @@ from http.server import BaseHTTPRequestHandler, HTTPServer
 
 import pytest
 
-from services.critic.package.loader import load_files
-from services.critic.runtime.engine import HarnessRuntime
-from services.critic.runtime.library import PREDICATES
+from services.harness.package.loader import load_files
+from services.harness.runtime.engine import HarnessRuntime
+from services.harness.runtime.library import PREDICATES
 from services.evolver.consolidate import consolidate
 from services.evolver.diagnose import Case, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
@@ -121,7 +121,7 @@ class _Handler(BaseHTTPRequestHandler):
     reply = ""
     seen: list[dict] = []
 
-    def do_POST(self) -> None:  # noqa: N802
+    def do_POST(self) -> None:
         body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
         _Handler.seen.append({"path": self.path, "auth": self.headers.get("Authorization"), "body": body})
         out = json.dumps({"choices": [{"message": {"role": "assistant", "content": _Handler.reply}}]}).encode()

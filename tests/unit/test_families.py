@@ -17,7 +17,7 @@ import pytest
 from services.common.specs import SpecError, TensorSpec
 from services.env_worker.milestones import milestone_specs
 from services.env_worker.signals import signal_specs
-from services.env_worker.families.base import (
+from services.env_worker.families import (
     ConfigError,
     EpisodeError,
     ResetError,
@@ -26,9 +26,9 @@ from services.env_worker.families.base import (
     canonical_config_key,
     family_names,
     get_family,
-    normalize_observation,
     select_gl_backend,
 )
+from services.env_worker.families.schema import normalize_observation
 
 CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 PRIVILEGED = {
@@ -73,10 +73,10 @@ def test_unknown_family_lists_known_names() -> None:
     assert {"libero", "robosuite"} <= set(family_names())
 
 
-def test_importing_base_loads_no_simulator() -> None:
+def test_importing_the_family_api_loads_no_simulator() -> None:
     """Families are imported lazily, so a worker pays only for the simulators it serves."""
     code = (
-        "import sys, services.env_worker.families.base as b; "
+        "import sys, services.env_worker.families as b; "
         "assert 'libero' in b.family_names(); "
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('libero', 'robosuite', 'mujoco')))"
     )

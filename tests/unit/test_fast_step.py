@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ResetSpec, get_family
+from services.env_worker.families import ResetSpec, get_family
 
 CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 TOLERANCE = 1e-6
@@ -164,10 +164,10 @@ def test_unsupported_env_falls_back_to_env_step() -> None:
     class Custom:  # an environment whose step the fast path does not know
         robots: list = []
 
-        def step(self, action):  # noqa: ANN001, ANN201
+        def step(self, action):
             return {}, 0.0, False, {}
 
-        def _pre_action(self, action, policy_step=False):  # noqa: ANN001, ANN201
+        def _pre_action(self, action, policy_step=False):
             pass
 
     env = Custom()

@@ -1,4 +1,4 @@
-"""Any env family as a gymnasium.Env (services/env_worker/families/gym_env.py, zetta/gym.py).
+"""Any env family as a gymnasium.Env (services/ops/gym_env.py, zetta/gym.py).
 
 The in-process env runs a real LIBERO slot; Gymnasium's own checker validates the API, and the
 tests check what the wrapper promises on top: spaces from the family's schema, episode keys
@@ -13,7 +13,7 @@ import pytest
 from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env
 
-from services.env_worker.families.gym_env import LocalFamilyEnv
+from services.ops.gym_env import LocalFamilyEnv
 from zetta.gym import space_for
 
 CONFIG = {"suite": "libero_goal", "task": "put_the_cream_cheese_in_the_bowl", "max_steps": 40}

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.critic.runtime.api import Frame, Window
-from services.critic.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, ParamError, resolve
-from services.critic.runtime.library import tools as t
-from services.critic.runtime.library.recoveries import DONE, FAILED, Chain
+from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, ParamError, resolve
+from services.harness.runtime.library import tools as t
+from services.harness.runtime.library.recoveries import DONE, FAILED, Chain
 
 OBJ = np.array([0.0, 0.0, 0.90, 0.04, 0.03, 0.95])  # a 4 x 3 x 5 cm object on a table at z = 0.90
 BOWL = np.array([0.20, -0.06, 0.90, 0.32, 0.06, 0.96])
@@ -145,7 +145,7 @@ def test_blocked_motion_compares_commanded_and_realized_translation() -> None:
 
 
 def test_contact_stability_falls_with_speed_and_force_oscillation() -> None:
-    from services.critic.runtime.library import STABILITY_PARAMS, contact_stability
+    from services.harness.runtime.library import STABILITY_PARAMS, contact_stability
 
     p = resolve(STABILITY_PARAMS, {}, "stability")
     rest = contact_stability(window([state(force=(0, 0, 5.0))] * 5), p)

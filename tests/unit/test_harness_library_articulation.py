@@ -9,12 +9,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from services.common import handles
-from services.critic.runtime.api import Frame, Window
-from services.critic.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, resolve
-from services.critic.runtime.library.playbooks import ARTICULATION_STAGES, PLAYBOOKS, check_playbooks, serving
-from services.critic.runtime.library.recoveries import DONE, FAILED
-from services.critic.runtime.orchestrator import milestone_kind
-from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
+from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, resolve
+from services.harness.runtime.library.playbooks import ARTICULATION_STAGES, PLAYBOOKS, check_playbooks, serving
+from services.harness.runtime.library.recoveries import DONE, FAILED
+from services.harness.runtime.orchestrator import milestone_kind
+from services.common.milestone_kinds import STAGE_KINDS, TEMPLATE_NAMES
 from services.evolver.diagnose import Case, repair_spec
 from services.evolver.draft import HarnessDraft
 from services.evolver.eod import t_eod

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from services.critic.package import diff as pkg_diff
-from services.critic.package import format as fmt
-from services.critic.package.errors import PackageRejected
-from services.critic.package.loader import load_files, load_package, unload
-from services.critic.package.probe import probe_import
-from services.critic.package.safety import ALLOWED_IMPORTS, check_source
-from services.critic.package.store import PackageStore, StoreCorrupted
+from services.harness.package import diff as pkg_diff
+from services.harness.package import format as fmt
+from services.harness.package.errors import PackageRejected
+from services.harness.package.loader import load_files, load_package, unload
+from services.harness.package.probe import probe_import
+from services.harness.package.safety import ALLOWED_IMPORTS, check_source
+from services.harness.package.store import PackageStore, StoreCorrupted
 
 SKILL = """+++
 name = "hold-when-far"
@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.critic.runtime.api import Proposal, Window
+from services.harness.runtime.api import Proposal, Window
 
 CALLS = [0]
 
@@ -244,7 +244,7 @@ def test_every_problem_of_every_file_is_reported_and_nothing_is_imported() -> No
 
 def test_allowed_imports_pass_the_checks() -> None:
     source = "\n".join(f"import {m}" for m in sorted(ALLOWED_IMPORTS) if m != "__future__")
-    source = "from __future__ import annotations\n" + source + "\nfrom services.critic.runtime.library import tools\n"
+    source = "from __future__ import annotations\n" + source + "\nfrom services.harness.runtime.library import tools\n"
     check_source("tools/ok.py", source)
 
 

@@ -13,15 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.critic.package.model import LoadedPackage
-from services.critic.runtime.engine import HarnessError, HarnessRuntime
-from services.critic.runtime.orchestrator import Orchestrator, Rule
+from services.harness.package.model import LoadedPackage
+from services.harness.runtime.engine import HarnessError, HarnessRuntime
+from services.harness.runtime.orchestrator import Orchestrator, Rule
 
 ROOT = Path(__file__).resolve().parents[2]
 
 TOOLS = '''
 import numpy as np
-from services.critic.runtime.api import Proposal
+from services.harness.runtime.api import Proposal
 
 
 def critic_flag(window, params):
@@ -62,7 +62,7 @@ def make_push(params):
 
 def module(name: str, source: str) -> types.ModuleType:
     mod = types.ModuleType(name)
-    exec(compile(source, f"<{name}>", "exec"), mod.__dict__)  # noqa: S102 - test-built package code
+    exec(compile(source, f"<{name}>", "exec"), mod.__dict__)  # test-built package code
     return mod
 
 
@@ -110,7 +110,7 @@ def test_a_proposal_without_an_accepting_rule_never_takes_control() -> None:
 
 
 def test_milestone_conditions_and_priorities() -> None:
-    from services.critic.runtime.api import Proposal
+    from services.harness.runtime.api import Proposal
 
     names = ["reached(a)", "grasped(a)", "lifted(a)"]
     rules = [Rule("x", "low", 1), Rule("x", "high", 5, requires_milestone=("grasped",)),
@@ -213,7 +213,7 @@ def test_cooldown_gives_the_policy_steps_before_a_new_intervention() -> None:
 
 
 BAD = '''
-from services.critic.runtime.api import Proposal
+from services.harness.runtime.api import Proposal
 
 
 def critic_raises(window, params):
@@ -261,7 +261,7 @@ def test_critics_that_raise_overrun_hang_or_misreport_are_switched_off_and_the_e
 
 
 def test_the_watchdog_leaves_no_pending_interrupt_behind() -> None:
-    from services.critic.runtime.budget import CallBudget, guarded_call
+    from services.harness.runtime.budget import CallBudget, guarded_call
 
     def endless() -> None:
         while True:
@@ -278,7 +278,7 @@ def test_the_watchdog_leaves_no_pending_interrupt_behind() -> None:
 def test_a_call_preempted_once_is_not_switched_off() -> None:
     import time
 
-    from services.critic.runtime.budget import CallBudget, guarded_call
+    from services.harness.runtime.budget import CallBudget, guarded_call
 
     budget = CallBudget(0.005, 1.0)
     assert guarded_call(time.sleep, (0.02,), budget) == (None, "")  # over in wall time, not in CPU
@@ -307,7 +307,7 @@ def test_a_package_that_does_not_make_a_harness_is_refused_with_the_reason(skill
 
 
 def test_the_example_package_builds() -> None:
-    from services.critic.package.loader import load_package
+    from services.harness.package.loader import load_package
 
     rt = HarnessRuntime(load_package(ROOT / "examples" / "harnesses" / "libero-goal-pick-place"))
     assert {"approach", "retention", "placement", "critics.empty_carry"} <= {c.name for c in rt.critics}
@@ -316,7 +316,7 @@ def test_the_example_package_builds() -> None:
 
 def test_reentry_clears_lists_evidence_that_blocks_every_handback() -> None:
     other = '''
-from services.critic.runtime.api import Proposal
+from services.harness.runtime.api import Proposal
 
 
 def critic_other(window, params):

@@ -8,7 +8,7 @@ import pytest
 
 from services.common.grpc_errors import ServiceError
 from services.env_worker.harness_loop import HarnessSource, bind
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 SKILL = '+++\nname = "src-test"\ndescription = "d"\n[runtime]\nwindow = {w}\n+++\nbody\n'
 

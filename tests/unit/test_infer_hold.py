@@ -20,7 +20,7 @@ from services.env_worker.slots import SlotActivity
 from services.policy_worker.models.base import load_model
 from services.policy_worker.scheduler import BatchScheduler, NullObserver, SchedulerConfig
 from services.policy_worker.servicer import PolicyWorkerServicer
-from zetta.v1 import policy_worker_pb2_grpc
+from zetta_wire.v1 import policy_worker_pb2_grpc
 
 MODEL = "scripted-pick-place"
 OBS = {

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ConfigError, ResetSpec, canonical_config_key, get_family
-from services.env_worker.milestones import MAX_MILESTONES, STAGE_KINDS
+from services.env_worker.families import ConfigError, ResetSpec, canonical_config_key, get_family
+from services.common.milestone_kinds import MAX_MILESTONES, STAGE_KINDS
 from services.policy_worker.models.oracle import OraclePolicy
 
 GOAL_SUITES = ["libero_goal", "libero_goal_task", "libero_goal_swap", "libero_goal_lan", "libero_goal_object"]

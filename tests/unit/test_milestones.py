@@ -13,10 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from services.common.milestone_kinds import MAX_MILESTONES, STAGE_KINDS, TEMPLATE_NAMES
 from services.env_worker.milestones import (
-    MAX_MILESTONES,
-    STAGE_KINDS,
-    TEMPLATE_NAMES,
     MilestoneTracker,
     SceneFacts,
     derive_plan,

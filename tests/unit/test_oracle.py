@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.env_worker.families.task_state import OBSTACLE_SLOTS
-from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
+from services.common.milestone_kinds import OBSTACLE_SLOTS, STAGE_KINDS, TEMPLATE_NAMES
 from services.policy_worker.models.base import FACTORIES, load_model
 from services.policy_worker.models.oracle import DOWN, OraclePolicy
 

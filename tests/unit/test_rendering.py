@@ -21,8 +21,8 @@ from prometheus_client import REGISTRY
 
 from services.common.config import ConfigError
 from services.env_worker.config import EnvWorkerConfig
-from services.env_worker.families.base import ConfigError as FamilyConfigError
-from services.env_worker.families.base import ResetSpec, get_family, select_gl_backend
+from services.env_worker.families import ConfigError as FamilyConfigError
+from services.env_worker.families import ResetSpec, get_family, select_gl_backend
 from services.env_worker.rendering import choose_gl_backend, gl_backend_choice, nvidia_gpu_present
 from services.env_worker.video import VideoError, VideoRecorder, check_video_dir
 
@@ -85,7 +85,7 @@ def test_backend_in_effect_is_exported() -> None:
 
 
 _RENDER_ONE = (
-    "import numpy as np; from services.env_worker.families.base import get_family, ResetSpec; "
+    "import numpy as np; from services.env_worker.families import get_family, ResetSpec; "
     "f = get_family('robosuite')({'env_name': 'Lift', 'cameras': ['agentview'], 'camera_size': 16}); "
     "s = f.init(); o, _ = s.reset(ResetSpec('')); img = o['agentview_image']; "
     "from services.env_worker.rendering import gl_renderer_string; "
@@ -295,9 +295,9 @@ async def test_worker_renders_at_chunk_end_and_writes_video(tmp_path: Path) -> N
     from services.env_worker.policy_client import PolicyClient
     from services.env_worker.servicer import EnvWorkerServicer
     from services.env_worker.slots import SlotTable
-    from zetta.codec import decode_observation, encode
-    from zetta.v1 import env_worker_pb2 as pb
-    from zetta.v1 import env_worker_pb2_grpc, types_pb2
+    from zetta_wire.codec import decode_observation, encode
+    from zetta_wire.v1 import env_worker_pb2 as pb
+    from zetta_wire.v1 import env_worker_pb2_grpc, types_pb2
 
     table = SlotTable(2, ["robosuite"])
     servicer = EnvWorkerServicer(table, PolicyClient([], 1000), video_dir=str(tmp_path))

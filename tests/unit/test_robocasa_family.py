@@ -15,7 +15,7 @@ import pytest
 
 from services.common.grpc_errors import ServiceError
 from services.env_worker.families import robocasa as rc
-from services.env_worker.families.base import ConfigError, ResetSpec, canonical_config_key, get_family
+from services.env_worker.families import ConfigError, ResetSpec, canonical_config_key, get_family
 from services.env_worker.slots import SlotTable
 
 REASON = rc.unavailable_reason()

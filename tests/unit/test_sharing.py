@@ -14,7 +14,7 @@ import copy
 import numpy as np
 import pytest
 
-from services.env_worker.families.base import ResetSpec, get_family
+from services.env_worker.families import ResetSpec, get_family
 
 CREAM_CHEESE = "put_the_cream_cheese_in_the_bowl"
 _TINY = """<mujoco><worldbody>

@@ -1,6 +1,6 @@
 """The Wilson interval every success table in docs/ is reported with."""
 
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def test_interval_of_known_values() -> None:

@@ -15,7 +15,7 @@ from typing import cast
 
 import pytest
 
-from services.env_worker.families.base import EnvFamily
+from services.env_worker.families import EnvFamily
 from services.env_worker.slots import BoundSlot, SlotActivity
 
 

@@ -15,23 +15,18 @@ the same event-loop turn (e.g. from ``asyncio.gather`` over many sessions) leave
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import grpc
 import numpy as np
 from google.protobuf import struct_pb2
 
-from zetta.codec import decode, decode_observation, encode
-from zetta.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
-
-_CHANNEL_OPTIONS = [
-    ("grpc.max_send_message_length", 256 * 1024 * 1024),
-    ("grpc.max_receive_message_length", 256 * 1024 * 1024),
-    ("grpc.keepalive_time_ms", 20_000),
-    ("grpc.keepalive_permit_without_calls", 1),
-]
+from zetta_wire.channel import CHANNEL_OPTIONS
+from zetta_wire.codec import decode, decode_observation, encode
+from zetta_wire.errors import parse_error_metadata
+from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
 
 
 class ZettaError(Exception):
@@ -48,14 +43,8 @@ class ZettaError(Exception):
     @classmethod
     def from_rpc(cls, err: grpc.aio.AioRpcError) -> "ZettaError":
         """Lift the trailing metadata the gateway sets into attributes."""
-        sessions: list[str] = []
-        retry: int | None = None
-        for key, value in err.trailing_metadata() or ():
-            if key == "zetta-failed-sessions":
-                sessions = [s for s in value.split(",") if s]
-            elif key == "retry-after-ms":
-                retry = int(value)
-        return cls(err.code(), err.details() or "", sessions, retry)
+        details = parse_error_metadata(err.trailing_metadata())
+        return cls(err.code(), err.details() or "", details.session_ids, details.retry_after_ms)
 
 
 @dataclass
@@ -238,7 +227,7 @@ class Gateway:
 
     def __init__(self, address: str) -> None:
         self.address = address
-        self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
         self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
         self._batcher = _Batcher(self)
 
@@ -488,7 +477,7 @@ class StepStream:
         if resp is grpc.aio.EOF:
             status = await self._call.code()
             raise ZettaError(status, await self._call.details() or "stream closed")
-        return resp
+        return cast(gateway_pb2.StepStreamResponse, resp)
 
     async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
                     record_video: bool = False) -> ResetResult:
@@ -520,7 +509,7 @@ class StepStream:
 class _Batcher:
     """Coalesces single-session calls of the same kind and parameters made in one loop turn."""
 
-    _REQUESTS = {
+    _REQUESTS: dict[str, Callable[[list[str], list[Any]], Any]] = {
         "Reset": lambda ids, payloads: gateway_pb2.ResetRequest(session_ids=ids, specs=payloads),
         "ActionStep": lambda ids, payloads: gateway_pb2.ActionStepRequest(session_ids=ids, actions=payloads),
         "PolicyStep": lambda ids, payloads: gateway_pb2.PolicyStepRequest(session_ids=ids, policy=payloads[0]),

@@ -27,9 +27,9 @@ import numpy as np
 from gymnasium import spaces
 
 from zetta.client import ResetResult, StepResult
-from zetta.codec import dtype_from_wire
+from zetta_wire.codec import dtype_from_wire
 from zetta.sync import SyncGateway
-from zetta.v1 import types_pb2
+from zetta_wire.v1 import types_pb2
 
 #: ``reset(options=...)`` keys and the SessionGroup.reset arguments they set.
 RESET_OPTIONS = ("task", "init_state_index", "instruction", "record_video", "harness", "harness_dir")
@@ -123,12 +123,14 @@ class ZettaEnv(SchemaEnv):
                  render_camera: str = "") -> None:
         check_render_mode(render_mode)
         self._owns_gateway = isinstance(gateway, str)
-        self._gateway = SyncGateway(gateway) if isinstance(gateway, str) else gateway
+        gw = SyncGateway(gateway) if isinstance(gateway, str) else gateway
+        #: None once closed.
+        self._gateway: SyncGateway | None = gw
         try:
-            self._sessions = self._gateway.create_sessions(env_family=env_family, n=1, env_config=env_config)
+            self._sessions = gw.create_sessions(env_family=env_family, n=1, env_config=env_config)
         except BaseException:
             if self._owns_gateway:
-                self._gateway.close()
+                gw.close()
             raise
         info = self._sessions.infos[0]
         self.session_id: str = info.session_id
@@ -174,4 +176,4 @@ class ZettaEnv(SchemaEnv):
 
 gymnasium.register(id="zetta/Session-v0", entry_point="zetta.gym:ZettaEnv")
 # The in-process env needs this repository's services package (resolved only by gymnasium.make).
-gymnasium.register(id="zetta/Local-v0", entry_point="services.env_worker.families.gym_env:LocalFamilyEnv")
+gymnasium.register(id="zetta/Local-v0", entry_point="services.ops.gym_env:LocalFamilyEnv")

@@ -1,0 +1,36 @@
+"""The env families' public API: what code outside the env worker may use to run a family in its
+own process (the oracle's and the training data's episodes, benchmarks, the local gym env).
+
+Families themselves are written against the modules behind it: ``contract`` (the interfaces),
+``registry``, ``options``, ``schema`` (the canonical manipulation observation), ``pool`` and
+``episode`` (the slot base class).
+"""
+
+from services.env_worker.families.contract import (
+    ConfigError,
+    EnvFamily,
+    EpisodeError,
+    ResetError,
+    ResetSpec,
+    Slot,
+    StepOutcome,
+    UnknownFamilyError,
+)
+from services.env_worker.families.registry import canonical_config_key, family_names, get_family, register_family
+from services.env_worker.rendering import select_gl_backend
+
+__all__ = [
+    "ConfigError",
+    "EnvFamily",
+    "EpisodeError",
+    "ResetError",
+    "ResetSpec",
+    "Slot",
+    "StepOutcome",
+    "UnknownFamilyError",
+    "canonical_config_key",
+    "family_names",
+    "get_family",
+    "register_family",
+    "select_gl_backend",
+]

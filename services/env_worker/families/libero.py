@@ -29,24 +29,13 @@ from typing import Any
 import numpy as np
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.base import (
-    OSC_POSE_ACTION,
-    ConfigError,
-    EnvFamily,
-    EnvPool,
-    EpisodeSlot,
-    ResetError,
-    ResetSpec,
-    Slot,
-    bool_option,
-    camera_option,
-    check_keys,
-    int_option,
-    manipulation_schema,
-    register_family,
-    select_gl_backend,
-    zero_padded,
-)
+from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
+from services.env_worker.families.episode import EpisodeSlot
+from services.env_worker.families.options import bool_option, camera_option, check_keys, int_option
+from services.env_worker.families.pool import EnvPool
+from services.env_worker.families.registry import register_family
+from services.env_worker.families.schema import OSC_POSE_ACTION, manipulation_schema, zero_padded
+from services.env_worker.rendering import select_gl_backend
 from services.env_worker.rendering import SlotRenderer
 
 select_gl_backend()  # LIBERO imports robosuite, which picks its GL context class at import time

@@ -17,26 +17,19 @@ from typing import Any
 import numpy as np
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.base import (
+from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
+from services.env_worker.families.episode import EpisodeSlot
+from services.env_worker.families.options import bool_option, camera_option, check_keys, int_option
+from services.env_worker.families.pool import EnvPool
+from services.env_worker.families.registry import register_family
+from services.env_worker.families.schema import (
     OSC_POSE_ACTION,
-    ConfigError,
-    EnvFamily,
-    EnvPool,
-    EpisodeSlot,
-    ResetError,
-    ResetSpec,
-    Slot,
-    bool_option,
     camera_obs_name,
-    camera_option,
-    check_keys,
-    int_option,
     manipulation_schema,
-    register_family,
-    select_gl_backend,
     upright_image,
     zero_padded,
 )
+from services.env_worker.rendering import select_gl_backend
 
 from services.env_worker.families.task_state import TaskProgressSlot, for_robosuite
 from services.env_worker.rendering import SlotRenderer

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from services.common.milestone_kinds import OBSTACLE_SLOTS
 from services.env_worker import signals as sig
 from services.env_worker.milestones import (
     LIFT_HEIGHT,
@@ -38,9 +39,8 @@ _GEOM_BOX, _GEOM_CYLINDER, _GEOM_CAPSULE = 6, 5, 3
 _JOINT_FREE, _JOINT_SLIDE, _JOINT_HINGE = 0, 2, 3
 #: Body name prefixes of the robot (arm and gripper) for collision intensity; the mount is static.
 ROBOT_PREFIXES = ("robot0_", "gripper0_")
-#: Rows of ``task_obstacle_bbox``, and how far (m) around the stage's object and target boxes, and
-#: below the lower of their bottoms (the table under them, not the floor), obstacles are reported.
-OBSTACLE_SLOTS = 32
+#: How far (m) around the stage's object and target boxes, and below the lower of their bottoms
+#: (the table under them, not the floor), obstacles are reported (in OBSTACLE_SLOTS rows).
 OBSTACLE_REACH = 0.15
 OBSTACLE_DEPTH = 0.05
 

@@ -47,8 +47,7 @@ from services.common.handles import aperture as _aperture_command
 from services.common.rotations import hand_down
 from services.common.rotations import quat_to_mat as _quat_to_mat
 from services.common.specs import TensorSpec
-from services.env_worker.families.task_state import OBSTACLE_SLOTS
-from services.env_worker.milestones import STAGE_KINDS, TEMPLATE_NAMES
+from services.common.milestone_kinds import OBSTACLE_SLOTS, STAGE_KINDS, TEMPLATE_NAMES
 from services.policy_worker.models.scripted import PickPlaceParams, ScriptedPickPlacePolicy
 
 _OPEN, _CLOSE = -1.0, 1.0

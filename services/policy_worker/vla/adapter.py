@@ -127,8 +127,8 @@ class OpenPIAdapter(ExternalPolicyAdapter):
 
     def __init__(self, checkpoint_dir: str, config_name: str = "pi05_libero", chunk_size: int = 10,
                  image_size: int = 224) -> None:
-        from openpi.policies import policy_config  # noqa: PLC0415 - optional dependency
-        from openpi.training import config as openpi_config  # noqa: PLC0415
+        from openpi.policies import policy_config  # optional dependency
+        from openpi.training import config as openpi_config
 
         self.policy = policy_config.create_trained_policy(openpi_config.get_config(config_name), checkpoint_dir)
         self.chunk_size = chunk_size
@@ -164,8 +164,8 @@ class LeRobotAdapter(ExternalPolicyAdapter):
     name = "pi05-lerobot"
 
     def __init__(self, checkpoint_dir: str, chunk_size: int = 10, image_size: int = 224, device: str = "cuda") -> None:
-        import torch  # noqa: PLC0415
-        from lerobot.policies.factory import get_policy_class  # noqa: PLC0415 - optional dependency
+        import torch
+        from lerobot.policies.factory import get_policy_class  # optional dependency
 
         self.torch = torch
         self.policy = get_policy_class("pi05").from_pretrained(checkpoint_dir).to(device).eval()

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, image_env_config, state_vector
+from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, state_vector
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
 PICK_PLACE_TASKS = (1, 2, 4, 6, 8, 9)
@@ -75,7 +75,7 @@ class DataRecipe:
 
 def _worker(recipe: dict, jobs, results) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
     cfg = {"suite": recipe["suite"]}

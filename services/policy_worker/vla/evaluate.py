@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, default_checkpoint
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results) -> None:
@@ -27,7 +27,7 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
 
     torch.set_num_threads(1)
     from services.common.specs import render_config
-    from services.env_worker.families.base import ResetSpec, get_family
+    from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
 
     policy = load_model(model)

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 
 def checkpoint_hash(path: str | Path) -> str:

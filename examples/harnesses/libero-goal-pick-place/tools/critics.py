@@ -6,8 +6,8 @@ nothing never had one. This critic tells transport with an empty, shut gripper f
 
 import numpy as np
 
-from services.critic.runtime.api import Proposal, Window
-from services.critic.runtime.library import tools
+from services.harness.runtime.api import Proposal, Window
+from services.harness.runtime.library import tools
 
 
 def critic_empty_carry(window: Window, params: dict) -> Proposal | None:

@@ -1,0 +1,424 @@
+"""The harness runtime: critics at every env step, the orchestrator's verdict, recoveries, re-entry.
+
+One :class:`HarnessRuntime` per slot and harness package. The env worker calls :meth:`start` at
+reset and :meth:`step` after every executed action (and once on the reset observation); the
+returned :class:`Decision` says who acts next: the policy, or a recovery with its action. The
+runtime records every intervention (proposer, evidence, decision, start and end steps, outcome)
+and, per episode, how many actions the policy and each recovery took, so a success that came from
+recoveries doing the work is visible as such (:class:`EpisodeReport`).
+
+Package conventions (the loader checks and imports the code; this module gives it meaning):
+
+* SKILL.md front matter: ``[runtime]`` (``window`` frames, ``critic_budget_ms``,
+  ``critic_hard_limit_ms``, ``cooldown`` steps after an intervention), ``[reentry]`` (``gamma``,
+  ``k``, ``clears``, ``[reentry.stability]``),
+  ``[[critics]]`` (library-predicate critics: ``name``, ``predicate``, ``evidence``, ``mode``,
+  ``params``, ``budget_ms``), ``[[adjudication]]`` (orchestrator.Rule);
+* ``tools/<stem>.py``: every module-level function ``critic_<name>(window, params)`` returning an
+  ``api.Proposal`` or None is a critic named ``<stem>.<name>``; ``params`` is params/<stem>.toml;
+* ``plans/*.toml``: each top-level table with a ``recovery`` key is a playbook, named by its key:
+  ``recovery`` (a library recovery, a list of them run in order, or ``"<stem>:<factory>"`` for
+  package code), ``params`` (for a list: one table per part), ``max_steps``, ``max_uses``,
+  ``clear_when`` (a library predicate that must hold before re-entry) and ``clear_params``.
+"""
+
+from __future__ import annotations
+
+import types
+from collections import Counter, deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from services.harness.package.model import LoadedPackage
+from services.harness.runtime.api import Frame, Proposal, Window
+from services.harness.runtime.budget import CallBudget, guarded_call
+from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
+from services.harness.runtime.library.recoveries import DONE, FAILED, Chain
+from services.harness.runtime.library.schema import ParamError
+from services.harness.runtime.orchestrator import POLICY, Orchestrator, Rule
+from services.harness.runtime.reentry import ReentryContract
+
+_HOLD = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+class HarnessError(ValueError):
+    """A package that loaded but does not make a runnable harness (unknown template, bad rule)."""
+
+
+@dataclass
+class Critic:
+    """A runtime critic: ``fn(window)`` returns a Proposal or None; switched off on misbehaviour."""
+
+    name: str
+    fn: Callable[[Window], Any]
+    budget: CallBudget
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A recovery playbook: how to build the recovery, its budgets and its clearing condition."""
+
+    mode: str
+    build: Callable[[], Recovery]
+    max_steps: int
+    max_uses: int
+    clear_when: Callable[[Window], bool] | None
+
+
+@dataclass
+class Intervention:
+    """One recovery that took control: who proposed it, on what evidence, the verdict, its span."""
+
+    id: str
+    kind: str
+    proposer: str
+    evidence: str
+    details: dict[str, float]
+    decision: str
+    start_step: int
+    end_step: int = -1
+    outcome: str = ""
+    actions: int = 0
+
+
+@dataclass(frozen=True)
+class DisabledCritic:
+    """A critic switched off for the rest of the episode, when and why."""
+
+    name: str
+    step: int
+    reason: str
+
+
+@dataclass
+class EpisodeReport:
+    """Per episode: who acted, every intervention, and which critics were switched off."""
+
+    harness: str
+    version: str
+    content_hash: str
+    policy_actions: int = 0
+    recovery_actions: int = 0
+    actions_by_mode: Counter[str] = field(default_factory=Counter)
+    interventions: list[Intervention] = field(default_factory=list)
+    disabled_critics: list[DisabledCritic] = field(default_factory=list)
+    proposals: int = 0
+    rejected: int = 0
+
+    @property
+    def interventions_by_kind(self) -> Counter[str]:
+        return Counter(iv.kind for iv in self.interventions)
+
+    @property
+    def policy_share(self) -> float:
+        """Share of the episode's actions taken by the policy (1.0 when nothing was executed)."""
+        total = self.policy_actions + self.recovery_actions
+        return self.policy_actions / total if total else 1.0
+
+
+@dataclass(frozen=True)
+class Decision:
+    """Who acts next: ``mode`` ("policy" or a playbook), the recovery's ``action`` when a recovery
+    has control, this step's proposals and the active intervention's id ("" under the policy)."""
+
+    mode: str
+    proposals: tuple[Proposal, ...]
+    action: np.ndarray | None
+    intervention_id: str
+
+
+def _library_critic(entry: Mapping[str, Any]) -> tuple[str, Callable[[Window], Any], float | None]:
+    known = {"name", "predicate", "evidence", "mode", "params", "budget_ms"}
+    unknown = sorted(set(entry) - known)
+    if unknown:
+        raise HarnessError(f"[[critics]] entry has unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    pred_name = entry.get("predicate")
+    if pred_name not in PREDICATES:
+        raise HarnessError(f"[[critics]] predicate {pred_name!r} is not in the library ({', '.join(PREDICATES)})")
+    spec = PREDICATES[pred_name]
+    name = str(entry.get("name", pred_name))
+    evidence = str(entry.get("evidence", pred_name))
+    mode = str(entry.get("mode", ""))
+    try:
+        params = resolve(spec.params, entry.get("params", {}), f"critic {name}")
+    except ParamError as exc:
+        raise HarnessError(str(exc)) from None
+    fn = spec.fn
+
+    def critic(w: Window) -> Proposal | None:
+        details = fn(w, params)
+        return None if details is None else Proposal(name, evidence, mode, details)
+
+    budget = entry.get("budget_ms")
+    return name, critic, None if budget is None else float(budget) / 1000.0
+
+
+def _code_critics(package: LoadedPackage) -> list[tuple[str, Callable[[Window], Any]]]:
+    out = []
+    for stem, module in sorted(package.tools.items()):
+        params = dict(package.params.get(stem, {}))
+        for attr, fn in sorted(vars(module).items()):
+            if attr.startswith("critic_") and isinstance(fn, types.FunctionType) and fn.__module__ == module.__name__:
+                out.append((f"{stem}.{attr.removeprefix('critic_')}", _bind(fn, params)))
+    return out
+
+
+def _bind(fn: Callable[[Window, Mapping[str, Any]], Any], params: Mapping[str, Any]) -> Callable[[Window], Any]:
+    return lambda w: fn(w, params)
+
+
+def _library_recovery(name: str, overrides: Mapping[str, Any], mode: str) -> Callable[[], Recovery]:
+    if name not in RECOVERIES:
+        raise HarnessError(f"playbook {mode}: recovery {name!r} is not in the library ({', '.join(RECOVERIES)})")
+    spec = RECOVERIES[name]
+    try:
+        params = resolve(spec.params, overrides, f"playbook {mode}, recovery {name}")
+    except ParamError as exc:
+        raise HarnessError(str(exc)) from None
+    return lambda: spec.factory(params)
+
+
+def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage) -> Plan:
+    known = {"recovery", "params", "max_steps", "max_uses", "clear_when", "clear_params", "description"}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise HarnessError(f"playbook {mode}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    recovery = table["recovery"]
+    params = table.get("params", {})
+    build: Callable[[], Recovery]
+    if isinstance(recovery, list):
+        if not recovery or not all(isinstance(r, str) for r in recovery):
+            raise HarnessError(f"playbook {mode}: 'recovery' list must name library recoveries")
+        parts = [_library_recovery(r, params.get(r, {}), mode) for r in recovery]
+        build = lambda: Chain([make() for make in parts])  # noqa: E731 - a fresh chain per intervention
+    elif isinstance(recovery, str) and ":" in recovery:
+        stem, attr = recovery.split(":", 1)
+        factory = getattr(package.tools.get(stem), attr, None)
+        if not callable(factory):
+            raise HarnessError(f"playbook {mode}: tools/{stem}.py has no recovery factory {attr!r}")
+        build = lambda: factory(dict(params))  # noqa: E731
+    elif isinstance(recovery, str):
+        build = _library_recovery(recovery, params, mode)
+    else:
+        raise HarnessError(f"playbook {mode}: 'recovery' must be a name or a list of names, got {recovery!r}")
+    clear: Callable[[Window], bool] | None = None
+    if "clear_when" in table:
+        spec = PREDICATES.get(table["clear_when"])
+        if spec is None:
+            raise HarnessError(f"playbook {mode}: clear_when {table['clear_when']!r} is not a library predicate")
+        try:
+            cparams = resolve(spec.params, table.get("clear_params", {}), f"playbook {mode} clear_when")
+        except ParamError as exc:
+            raise HarnessError(str(exc)) from None
+        clear = lambda w: spec.fn(w, cparams) is not None  # noqa: E731
+    max_steps, max_uses = int(table.get("max_steps", 300)), int(table.get("max_uses", 3))
+    if max_steps < 1 or max_uses < 1:
+        raise HarnessError(f"playbook {mode}: max_steps and max_uses must be >= 1")
+    return Plan(mode, build, max_steps, max_uses, clear)
+
+
+class HarnessRuntime:
+    """Runs one harness package over the episodes of one slot (single-threaded: the slot's thread)."""
+
+    def __init__(self, package: LoadedPackage) -> None:
+        self.package = package
+        skill = package.skill
+        runtime = skill.get("runtime", {})
+        self.window_size = int(runtime.get("window", 32))
+        self.budget_s = float(runtime.get("critic_budget_ms", 2.0)) / 1000.0
+        self.hard_limit_s = float(runtime.get("critic_hard_limit_ms", 250.0)) / 1000.0
+        #: Steps after an intervention ends during which no new one starts: the policy gets the
+        #: chance the re-entry contract promised it before old evidence in the window counts again.
+        self.cooldown = int(runtime.get("cooldown", 0))
+        if self.window_size < 1 or self.budget_s <= 0 or self.hard_limit_s < self.budget_s or self.cooldown < 0:
+            raise HarnessError("[runtime]: window >= 1, cooldown >= 0 and 0 < critic_budget_ms <= critic_hard_limit_ms "
+                               "are required")
+        try:
+            self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
+        except (ValueError, ParamError) as exc:
+            raise HarnessError(str(exc)) from None
+        self._critic_defs: list[tuple[str, Callable[[Window], Any], float | None]] = [
+            _library_critic(e) for e in skill.get("critics", [])
+        ]
+        self._critic_defs += [(n, fn, None) for n, fn in _code_critics(package)]
+        names = [n for n, _, _ in self._critic_defs]
+        if len(set(names)) != len(names):
+            raise HarnessError(f"critic names must be unique, got {names}")
+        self.plans: dict[str, Plan] = {}
+        for stem, tables in sorted(package.plans.items()):
+            for mode, table in tables.items():
+                if isinstance(table, Mapping) and "recovery" in table:
+                    if mode in self.plans or mode == POLICY:
+                        raise HarnessError(f"playbook name {mode!r} (plans/{stem}.toml) is reserved or used twice")
+                    self.plans[mode] = _plan(mode, table, package)
+        try:
+            rules = [Rule.from_table(t) for t in skill.get("adjudication", [])]
+        except ValueError as exc:
+            raise HarnessError(str(exc)) from None
+        for rule in rules:
+            if rule.mode not in self.plans:
+                raise HarnessError(f"adjudication rule for {rule.evidence!r} grants mode {rule.mode!r}, which no plan defines")
+        self.orchestrator = Orchestrator(rules)
+        #: Shape of one env action, when the caller knows it: a recovery action of another shape
+        #: fails its intervention instead of reaching the env.
+        self.action_shape: tuple[int, ...] | None = None
+        self.start("", [])
+
+    # ---- episode lifecycle -------------------------------------------------------------------
+
+    def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
+        """Begin an episode: fresh window, memory, critics (all re-enabled) and report."""
+        self.instruction = instruction
+        self.milestone_names = tuple(milestone_names)
+        self.critics = [
+            Critic(n, fn, CallBudget(b if b is not None else self.budget_s, self.hard_limit_s))
+            for n, fn, b in self._critic_defs
+        ]
+        self._frames: deque[Frame] = deque(maxlen=self.window_size)
+        self._memory = EpisodeMemory()
+        self._uses: Counter[str] = Counter()
+        self._active: Intervention | None = None
+        self._recovery: Recovery | None = None
+        self._plan: Plan | None = None
+        self._waiting = False
+        self._mode = POLICY
+        self._step = 0
+        self._quiet_until = -1
+        self.report = EpisodeReport(self.package.name, self.package.version, self.package.content_hash)
+
+    @property
+    def mode(self) -> str:
+        """Who produces the next action."""
+        return self._mode
+
+    @property
+    def active(self) -> Intervention | None:
+        """The intervention in control, if any."""
+        return self._active
+
+    def step(self, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str]) -> Decision:
+        """Observe the state the last action led to (``action`` None at reset) and decide who acts next."""
+        if action is not None:
+            self._step += 1
+            if self._mode == POLICY:
+                self.report.policy_actions += 1
+            else:
+                self.report.recovery_actions += 1
+                if self._active is not None:
+                    self._active.actions += 1
+            self.report.actions_by_mode[self._mode] += 1
+        self._frames.append(Frame(self._step, obs, action, milestones))
+        window = Window(tuple(self._frames), self.instruction, self.milestone_names)
+        proposals = self._run_critics(window)
+        if self._active is not None:
+            next_action = self._continue(window, proposals)
+            if next_action is not None:
+                return Decision(self._mode, proposals, next_action, self._active.id)
+            return Decision(POLICY, proposals, None, "")
+        if self._step <= self._quiet_until:
+            return Decision(POLICY, proposals, None, "")
+        verdict = self.orchestrator.adjudicate(
+            proposals, milestones, self.milestone_names,
+            {m: self._uses[m] >= p.max_uses for m, p in self.plans.items()},
+        )
+        self.report.rejected += len(verdict.rejected)
+        if verdict.accepted is None or verdict.rule is None:
+            return Decision(POLICY, proposals, None, "")
+        next_action = self._begin(window, verdict.accepted, verdict.rule, proposals)
+        if next_action is None:
+            return Decision(POLICY, proposals, None, "")
+        return Decision(self._mode, proposals, next_action, self._active.id)
+
+    def finish(self, success: bool) -> EpisodeReport:
+        """End the episode: an intervention still in control ends with it."""
+        if self._active is not None:
+            self._end("episode_end_success" if success else "episode_end")
+        return self.report
+
+    # ---- internals ---------------------------------------------------------------------------
+
+    def _run_critics(self, window: Window) -> tuple[Proposal, ...]:
+        out = []
+        for critic in self.critics:
+            if not critic.enabled:
+                continue
+            result, error = guarded_call(critic.fn, (window,), critic.budget)
+            if not error and result is not None and not isinstance(result, Proposal):
+                error = f"returned {type(result).__name__}, not a Proposal or None"
+            if error:
+                critic.enabled = False
+                self.report.disabled_critics.append(DisabledCritic(critic.name, self._step, error))
+                continue
+            if result is not None:
+                out.append(result)
+        self.report.proposals += len(out)
+        return tuple(out)
+
+    def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]) -> np.ndarray | None:
+        plan = self.plans[rule.mode]
+        self._uses[rule.mode] += 1
+        iv = Intervention(
+            id=f"iv{len(self.report.interventions) + 1}",
+            kind=rule.mode,
+            proposer=proposal.critic,
+            evidence=proposal.evidence,
+            details={k: float(v) for k, v in proposal.details.items()},
+            decision=f"accepted: rule {rule.evidence}->{rule.mode} (priority {rule.priority}), "
+                     f"use {self._uses[rule.mode]}/{plan.max_uses}",
+            start_step=self._step,
+        )
+        self.report.interventions.append(iv)
+        self._active, self._plan, self._waiting = iv, plan, False
+        self._mode = rule.mode
+        try:
+            self._recovery = plan.build()
+            self._recovery.start(window, self._memory)
+        except Exception as exc:  # noqa: BLE001 - package recovery code: the intervention fails, not the episode
+            self._end(f"recovery_failed: raised {type(exc).__name__}: {exc}")
+            return None
+        return self._continue(window, proposals)
+
+    def _continue(self, window: Window, proposals: Sequence[Proposal]) -> np.ndarray | None:
+        """The active recovery's next action, or None when control goes back to the policy."""
+        iv, plan, recovery = self._active, self._plan, self._recovery
+        assert iv is not None and plan is not None and recovery is not None
+        if iv.actions >= plan.max_steps:
+            self._end("budget_exhausted")
+            return None
+        if not self._waiting:
+            try:
+                action = recovery.act(window)
+                if action is not None:
+                    action = np.asarray(action, dtype=np.float64)
+                    if self.action_shape is not None and action.shape != self.action_shape:
+                        raise ValueError(f"action of shape {action.shape}, the env takes {self.action_shape}")
+                    return action
+            except Exception as exc:  # noqa: BLE001 - package recovery code: the intervention fails, not the episode
+                self._end(f"recovery_failed: raised {type(exc).__name__}: {exc}")
+                return None
+            if getattr(recovery, "status", DONE) == FAILED:
+                self._end(f"recovery_failed: {getattr(recovery, 'reason', '')}")
+                return None
+            self._waiting = True
+            self._contract.reset()
+        clears = self._contract.clears
+        cleared = not any((p.critic == iv.proposer and p.evidence == iv.evidence) or p.evidence in clears
+                          for p in proposals)
+        if cleared and plan.clear_when is not None:
+            cleared = plan.clear_when(window)
+        if self._contract.holds(window, cleared):
+            self._end("reentered")
+            return None
+        return _HOLD.copy()
+
+    def _end(self, outcome: str) -> None:
+        iv = self._active
+        assert iv is not None
+        iv.end_step, iv.outcome = self._step, outcome
+        self._quiet_until = self._step + self.cooldown
+        self._active, self._recovery, self._plan, self._waiting = None, None, None, False
+        self._mode = POLICY
