@@ -99,12 +99,11 @@ def _slot(max_steps: int) -> tuple[Any, Any]:
 
 
 def record(out: Path, episodes: int, max_steps: int) -> None:
-    """Run the shipped policy in-process on episode keys (seed 0, init state k) and save its actions."""
+    """Run the state baseline policy in-process on episode keys (seed 0, init state k) and save its actions."""
     os.environ.setdefault("ZETTA_TORCH_THREADS", "1")
-    from bench.bench_sweep import DEFAULT_MODEL, quiet_fds, random_replays
-    from services.policy_worker.models.base import load_model
-    from bench.bench_sweep import quiet_fds
+    from bench.bench_sweep import quiet_fds, random_replays
     from services.common.policies import PRIVILEGED_BASELINE
+    from services.policy_worker.models.base import load_model
 
     ResetSpec = _families().ResetSpec
     family, slot = _slot(max_steps)

@@ -28,7 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY  # noqa: E402
 from services.harness.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
 from services.ops.local_stack import LocalStack  # noqa: E402
