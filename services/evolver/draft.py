@@ -41,8 +41,8 @@ class PlanDraft:
     max_uses: int = 3
     #: Actions the intervention may take, the wait for re-entry included: a recovery that cannot
     #: clear its evidence gives control back after this many instead of holding to the episode's end
-    #: (half of LIBERO's 300-step budget for a single template; playbooks set their own).
-    max_steps: int = 150
+    #: (the runtime's cap, services/critic/runtime/limits.py; playbooks may set less).
+    max_steps: int = 80
     #: Library predicate that must hold before re-entry ("" = none).
     clear_when: str = ""
     #: The library playbook this plan instantiates ("" = a bare recovery template); names the mode.

@@ -3,8 +3,8 @@
 For a repair spec (diagnose.RepairSpec) the search proposes patches {C*, R*}: a critic built from a
 library predicate template, with at most ``max_param_edits`` parameters moved off their defaults
 by one grid step inside the template's declared range, paired with a plan: one of the library's
-typed playbooks meant for the kind of m* (multi-step recoveries such as acquire, or acquire and
-place in one intervention; services/critic/runtime/library/playbooks.py) or a recovery template
+typed playbooks meant for the kind of m* (bounded multi-step recoveries such as acquire, place, or
+instruction redirection; services/critic/runtime/library/playbooks.py) or a recovery template
 compatible with the evidence. A critic qualifies only if a diagnostic replay shows it fires within
 ``window`` steps of t_EOD on the medoid; critics are ranked by how many cluster members they also
 catch near their t_EOD, then by how rarely they fire on successful rollouts (false positives), then
@@ -31,14 +31,14 @@ from services.evolver.trace import Trace
 COMPATIBLE: dict[str, tuple[str, ...]] = {
     "grasp_lost": ("regrasp", "release_and_restage"),
     "failed_acquisition": ("regrasp", "release_and_restage"),
-    "non_approach": ("pregrasp+regrasp", "pregrasp", "regrasp"),
+    "non_approach": ("pregrasp+regrasp", "redirect_instruction", "pregrasp", "regrasp"),
     "approach_wrong_object": ("pregrasp", "retreat_until_separated"),
-    "stalled_progress": ("pregrasp+regrasp", "release_and_restage", "fine_alignment"),
     "drift": ("regrasp", "release_and_restage"),
     "held_near_target": ("lower_until_supported_then_release", "fine_alignment"),
     "held_stalled_transport": ("fine_alignment+lower_until_supported_then_release", "fine_alignment"),
     "blocked_motion": ("retreat_until_separated", "fine_alignment", "release_and_restage"),
-    "articulation_stalled": ("operate_handle",),
+    "articulation_stalled": ("redirect_instruction",),
+    "stalled_progress": ("pregrasp+regrasp", "redirect_instruction", "release_and_restage", "fine_alignment"),
 }
 #: Predicates that state a healthy condition (used by re-entry and gating), never failure evidence.
 NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})

@@ -61,7 +61,7 @@ def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     assert cands and cands[0].critic.template == "grasp_lost"
     best = cands[0]
     assert abs(best.fire_step - medoid.t_eod) <= 40 and best.coverage == 1.0 and best.false_positive == 0.0
-    assert best.plan.playbook == "carry" and best.plan.recovery.startswith("regrasp+") and "on" in best.critic.missing
+    assert best.plan.playbook == "acquire" and best.plan.recovery == "regrasp" and "on" in best.critic.missing
     assert all(c.plan.playbook != "place" for c in cands)
     assert check_patch(PARENT, best, max_edits=3) is None
     runtime = HarnessRuntime(load_files(render(best.apply(PARENT))))
