@@ -10,6 +10,7 @@ and gates. The offline search never depends on it.
 from __future__ import annotations
 
 import json
+import os
 import urllib.error
 import urllib.request
 from collections.abc import Mapping, Sequence
@@ -35,6 +36,18 @@ class LLMConfig:
     model: str
     api_key: str = ""
     timeout_s: float = 60.0
+
+
+def config_from_env() -> LLMConfig | None:
+    """The optional backend of this process: ZETTA_EVOLVER_LLM_URL (+ _MODEL, _API_KEY); None when unset.
+    The CLI and the evolver service read it the same way."""
+    url = os.environ.get("ZETTA_EVOLVER_LLM_URL", "")
+    if not url:
+        return None
+    model = os.environ.get("ZETTA_EVOLVER_LLM_MODEL", "")
+    if not model:
+        raise LLMError("ZETTA_EVOLVER_LLM_URL is set but ZETTA_EVOLVER_LLM_MODEL is not: name the model")
+    return LLMConfig(url, model, os.environ.get("ZETTA_EVOLVER_LLM_API_KEY", ""))
 
 
 def _prompt(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any], recs: Mapping[str, Any]) -> str:

@@ -99,13 +99,16 @@ def test_rendered_window_covers_every_critic_horizon() -> None:
 
 
 def test_a_cluster_repair_passes_only_when_validated_and_solving_its_whole_cluster() -> None:
-    """Historical regression is measured per cluster with its own stack; 4/5 does not pass at 100 %."""
+    """Historical regression is measured per cluster with its own stack; 4/5 does not pass at 100 %;
+    a cluster of fewer than 3 seeds never passes."""
     cand = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "acquire"), plan_of("acquire"),
                      40, 1.0, 0.0, 2)
     assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3], (3, 3), "e@1").passes(GateParams(1.0))
-    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(1.0))
-    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(0.8))
+    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3, 4, 5], (4, 5), "e@1").passes(GateParams(1.0))
+    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3, 4, 5], (4, 5), "e@1").passes(GateParams(0.8))
     assert not ClusterRepair({}, [], None, [1], (0, 1), "").passes(GateParams(0.0))
+    # One- and two-seed clusters prove nothing, whatever they solve.
+    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (2, 2), "e@1").passes(GateParams(1.0))
 
 
 def test_reference_index_takes_dev_successes_of_any_harness_but_never_heldout(tmp_path: Path) -> None:

@@ -49,6 +49,12 @@ def _oracle() -> PolicyModel:
     return OraclePolicy()
 
 
+def _do_nothing() -> PolicyModel:
+    from services.policy_worker.models.do_nothing import DoNothingPolicy
+
+    return DoNothingPolicy()
+
+
 def _zetta_vla_state() -> PolicyModel:
     from services.policy_worker.vla.policy import make_state_policy
 
@@ -65,6 +71,8 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
     # One generic skill per BDDL goal predicate on privileged state (models/oracle.py; docs/oracle.md).
     "oracle": _oracle,
+    # Zero actions: the control every evolution result is measured against (models/do_nothing.py).
+    "do-nothing": _do_nothing,
     # The Zetta VLA (services/policy_worker/vla): shipped state checkpoint; image variant when trained.
     "zetta-vla-state": _zetta_vla_state,
     "zetta-vla-image": _zetta_vla_image,
