@@ -490,7 +490,8 @@ def _safe(name: str) -> str:
 def _draft_to(d: HarnessDraft) -> dict[str, Any]:
     return {"name": d.name, "tasks": list(d.tasks),
             "critics": {k: {"template": c.template, "params": dict(c.params), "evidence": c.evidence, "mode": c.mode,
-                            "priority": c.priority, "missing": list(c.missing)} for k, c in d.critics.items()},
+                            "priority": c.priority, "missing": list(c.missing), "code": c.code}
+                        for k, c in d.critics.items()},
             "plans": {k: {"recovery": p.recovery, "args": dict(p.args), "max_uses": p.max_uses, "max_steps": p.max_steps,
                           "clear_when": p.clear_when, "playbook": p.playbook} for k, p in d.plans.items()},
             "reentry": [d.reentry_gamma, d.reentry_k], "runtime": [d.window, d.cooldown]}

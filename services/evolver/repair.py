@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.diagnose import RepairSpec
-from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
+from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft, PlanDraft, render
 from services.evolver.replay import first_fire, resume_frame
 from services.evolver.trace import Trace
 
@@ -297,7 +297,9 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     from services.critic.runtime.library.schema import ParamError, resolve
 
     preds, recs = library()
-    if cand.critic.template not in preds:
+    if cand.critic.code and cand.critic.template != CODE_TEMPLATE:
+        return f"a code critic's template is {CODE_TEMPLATE!r}, not {cand.critic.template!r}"
+    if not cand.critic.code and cand.critic.template not in preds:
         return f"unknown predicate template {cand.critic.template!r}"
     parts = cand.plan.recovery.split("+")
     unknown = [p for p in parts if p not in recs]
@@ -308,7 +310,11 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     if cand.plan.max_steps < 1 or cand.plan.max_uses < 1:
         return "max_steps and max_uses must be >= 1"
     try:
-        resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
+        if cand.critic.code:
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in cand.critic.params.values()):
+                return f"{cand.critic_name}: a code critic's params must be numbers"
+        else:
+            resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
         for part in parts:
             args = cand.plan.args.get(part, {}) if len(parts) > 1 else cand.plan.args
             resolve(recs[part].params, args, part)  # type: ignore[arg-type]
@@ -318,6 +324,14 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     if edits > max_edits:
         return f"patch changes {edits} critics/plans/parameters; at most {max_edits} allowed"
     return build_error(cand.apply(parent))
+
+
+def code_detector(draft: HarnessDraft, name: str) -> Any:
+    """The ``detect`` function of code critic ``name``, imported through the package loader's checks
+    (raises PackageRejected for code the loader refuses)."""
+    from services.critic.package.loader import load_files
+
+    return load_files(render(draft)).tools[name].detect
 
 
 def build_error(draft: HarnessDraft) -> str | None:
