@@ -274,7 +274,7 @@ ROLLOUT_ROWS = [
 
 EVOLUTION_ROWS = [
     Row("Evolution progress", [
-        Panel("Success per round", "Success rate per task, round and arm (dev, heldout_bare, heldout_final) of "
+        Panel("Success per round", "Success rate per task, round and arm (dev, test_bare, test_final, test_control) of "
               "the running evolution jobs (services/evolver); empty until a job runs.",
               [Query("max by (task, round, arm) (zetta_evolver_success_ratio)", "{{task}} round {{round}} {{arm}}",
                      instant=True)], kind="barchart", unit="percentunit", width=24, min=0, max=1),

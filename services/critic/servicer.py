@@ -190,7 +190,8 @@ class PackageCache:
 
 def decision_message(step: int, decision: Any) -> critic_pb2.EvaluateResponse:
     """The runtime's Decision as an EvaluateResponse."""
-    out = critic_pb2.EvaluateDecision(step=step, mode=decision.mode, intervention_id=decision.intervention_id or "")
+    out = critic_pb2.EvaluateDecision(step=step, mode=decision.mode, intervention_id=decision.intervention_id or "",
+                                      instruction=decision.instruction)
     for p in decision.proposals:
         proposal = out.proposals.add(critic=p.critic, evidence=p.evidence, suggested_mode=p.suggested_mode)
         for key, value in p.details.items():

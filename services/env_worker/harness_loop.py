@@ -155,18 +155,25 @@ class SlotHarness:
         """A recovery has control: the next actions are its own, the policy need not be asked."""
         return self.decision.action is not None
 
+    @property
+    def redirect(self) -> str:
+        """The instruction the policy is asked under while a recovery redirects it ("" otherwise)."""
+        return self.decision.instruction
+
     def run_chunk(self, env: Any, chunk: np.ndarray, max_steps: int, step_hist: Any) -> tuple[Any, np.ndarray, float, int]:
         """Execute up to ``len(chunk)`` actions, each the recovery's when one has control.
 
         Returns the last outcome, the actions actually executed ([n, dim]), the summed reward and
-        how many of them a recovery chose. Stops early at the end of the episode and when a
-        recovery hands control back (the rest of the policy's chunk is stale).
+        how many of them a recovery chose. Stops early at the end of the episode, when a recovery
+        hands control back and when the instruction the policy acts under changes (instruction
+        redirection begins or ends): the rest of the policy's chunk is stale.
         """
         self.runtime.action_shape = tuple(chunk.shape[1:])
         executed: list[np.ndarray] = []
         reward, by_recovery = 0.0, 0
         outcome = None
         last = len(chunk) - 1
+        asked_under = self.decision.instruction
         for i, planned in enumerate(chunk):
             recovering = self.decision.action is not None
             action = self.decision.action.astype(chunk.dtype) if recovering else planned
@@ -180,6 +187,8 @@ class SlotHarness:
             if outcome.terminated or outcome.truncated or env.episode_step >= max_steps:
                 break
             if recovering and self.decision.action is None:
+                break
+            if not recovering and self.decision.action is None and self.decision.instruction != asked_under:
                 break
         assert outcome is not None
         return outcome, np.stack(executed), reward, by_recovery

@@ -314,8 +314,10 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         episode = slot.require_episode()
         assert slot.last_obs is not None
         token = f"{self.worker_id}/{slot.session_id}/{episode.episode_id}/{slot.env.episode_step}"
-        out = await self.policy.infer(token, policy.model, slot.last_obs, policy.instruction or episode.instruction,
-                                      policy.timeout_ms)
+        # A harness recovery that redirects the policy names the instruction of its sub-goal.
+        redirect = slot.harness.redirect if slot.harness is not None else ""
+        instruction = redirect or policy.instruction or episode.instruction
+        out = await self.policy.infer(token, policy.model, slot.last_obs, instruction, policy.timeout_ms)
         actions = decode(out.actions)
         return action_spec_check(slot.family.action_spec(), actions, slot.session_id), out.model
 

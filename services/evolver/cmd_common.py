@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY
-from services.evolver.llm import LLMConfig
+from services.evolver.llm import LLMConfig, LLMError, config_from_env
 from services.evolver.rollout import RunConfig
 
 
@@ -49,13 +49,10 @@ def run_config(args: argparse.Namespace, gateway: str) -> RunConfig:
 
 def llm_from_env() -> LLMConfig | None:
     """The optional LLM backend: ZETTA_EVOLVER_LLM_URL (+ _MODEL, _API_KEY); unset means offline only."""
-    url = os.environ.get("ZETTA_EVOLVER_LLM_URL", "")
-    if not url:
-        return None
-    model = os.environ.get("ZETTA_EVOLVER_LLM_MODEL", "")
-    if not model:
-        raise SystemExit("ZETTA_EVOLVER_LLM_URL is set but ZETTA_EVOLVER_LLM_MODEL is not: name the model")
-    return LLMConfig(url, model, os.environ.get("ZETTA_EVOLVER_LLM_API_KEY", ""))
+    try:
+        return config_from_env()
+    except LLMError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 def publish_dir(registry: str, path: Path) -> str:

@@ -2,9 +2,9 @@
 
   zetta eval --harness evolved-6@2 --suite libero_goal_swap --tasks 3,4 --seeds 20
 
-Both arms run on the same held-out seeds of each task (the store keeps them apart from any dev
-seed), with the same policy and budget; results are filed in --store and reported with Wilson
-intervals.
+The bare policy, the harness and the harness around the do-nothing policy (the control) run on
+the same test seeds of each task (the store keeps them apart from any dev or gate seed), with the
+same policy and budget; results are filed in --store and reported with Wilson intervals.
 """
 
 from __future__ import annotations

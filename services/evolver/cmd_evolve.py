@@ -1,6 +1,6 @@
 """`zetta evolve`: the three loops on a suite's tasks, resumable, with a Markdown report.
 
-  zetta evolve --suite libero_goal_task --tasks 6,9 --rounds 2 --dev-seeds 50 --heldout-seeds 20
+  zetta evolve --suite libero_goal_task --tasks 6,9 --rounds 2 --dev-seeds 20 --heldout-seeds 10 --test-seeds 20
   zetta evolve export --store DIR --out DATASET     (LeRobot-style parquet + mp4 of the stored rollouts)
   zetta evolve experiment [--suites ...] [--tasks 0-9] (every task of several suites + transfer, one summary)
 
@@ -26,7 +26,7 @@ from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
-from services.evolver.store import RolloutStore
+from services.evolver.store import RolloutStore, StoreError
 
 
 def _export(argv: Sequence[str]) -> int:
@@ -58,8 +58,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     add_run_args(p)
     p.add_argument("--rounds", type=int, default=1)
-    p.add_argument("--dev-seeds", type=int, default=50)
-    p.add_argument("--heldout-seeds", type=int, default=20)
+    p.add_argument("--dev-seeds", type=int, default=EvolveConfig.dev_seeds, help="repair seeds per task")
+    p.add_argument("--heldout-seeds", type=int, default=EvolveConfig.heldout_seeds,
+                   help="gate (admission) seeds per task")
+    p.add_argument("--test-seeds", type=int, default=EvolveConfig.test_seeds,
+                   help="seeds of the reported number per task (dev + held-out + test <= 50 initial states)")
     p.add_argument("--name", default="evolved", help="harness name prefix (versions are <name>-<task>@N)")
     p.add_argument("--max-clusters", type=int, default=EvolveConfig.max_clusters,
                    help="clusters repaired per task and round, largest first")
@@ -76,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = p.parse_args(argv)
     store_dir = a.store or Path("runs") / f"evolve-{a.suite}"
     cfg = EvolveConfig(suite=a.suite, tasks=tasks_of(a.tasks), rounds=a.rounds, dev_seeds=a.dev_seeds,
-                       heldout_seeds=a.heldout_seeds, name=a.name, max_clusters=a.max_clusters,
+                       heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds, name=a.name, max_clusters=a.max_clusters,
                        eod=EODParams(epsilon=a.eod_epsilon), cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
                        llm=llm_from_env(), max_depth=a.max_depth)
@@ -89,6 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             registry = RegistryClient(ep.registry)
             try:
                 Evolution(cfg, store, run_config(a, ep.gateway), registry, bars).run()
+            except StoreError as exc:
+                raise SystemExit(f"zetta evolve: {exc}") from None
             finally:
                 registry.close()
     except KeyboardInterrupt:

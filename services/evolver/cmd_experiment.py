@@ -1,16 +1,19 @@
 """`zetta evolve experiment`: the full experiment in one command: evolve every task of several suites,
-then zero-shot transfer of every admitted harness to a suite it never saw, with one summary.
+then zero-shot transfer of every admitted harness to a suite it never saw, with one results file.
 
   zetta evolve experiment --suites libero_goal_task,libero_goal_swap --tasks 0-9 --dev-seeds 20 \\
-      --heldout-seeds 20 --rounds 1 --transfer-suite libero_goal --transfer-seeds 10 --out runs/experiment
+      --heldout-seeds 10 --test-seeds 20 --rounds 2 --transfer-suite libero_goal --transfer-seeds 20 \\
+      --out runs/experiment
 
-One local stack (or --gateway/--registry) serves everything. Each suite has its own store
-(<out>/<suite>, the usual `zetta evolve` store and report); the transfer arm has one too
-(<out>/transfer-<suite>): the harness admitted for task t of an evolved suite runs, beside the bare
-policy, on held-out seeds of task t of the transfer suite. <out>/summary.md holds held-out success
-before and after evolution per task with Wilson intervals, the averages, the rollouts and the wall
-time, and the transfer table. Stop it and run the same command again: finished rollouts, rounds
-and admitted versions are kept (see `zetta evolve`).
+One local stack (or --gateway/--registry) serves everything, the frozen policy and the do-nothing
+control. Each suite has its own store (<out>/<suite>, the usual `zetta evolve` store and report);
+the transfer arm has one too (<out>/transfer-<suite>): the harness admitted for task t of an
+evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
+the transfer suite. <out>/results.json is the machine-readable result (services/evolver/results.py:
+commit, policy checkpoint hash, splits, test arms with Wilson intervals, control, recoveries'
+share, wall time); <out>/summary.md is rendered from it, and so is docs/evolution.md's results block
+(scripts/gen_evolution_tables.py). Stop it and run the same command again: finished rollouts,
+rounds and admitted versions are kept (see `zetta evolve`).
 """
 
 from __future__ import annotations
@@ -22,14 +25,17 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY
+from services.evolver import results
 from services.evolver.cmd_common import llm_from_env, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
-from services.evolver.store import RolloutStore
+from services.evolver.store import RolloutStore, StoreError
 from zetta_wire.stats import wilson
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def task_list(text: str) -> tuple[str, ...]:
@@ -46,61 +52,8 @@ def task_list(text: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(out))
 
 
-def _rate(s: int, n: int) -> str:
-    lo, hi = wilson(s, n)
-    return f"{s}/{n} = {s / n:.0%} [{lo:.0%}, {hi:.0%}]" if n else "-"
-
-
 def _walls(store: RolloutStore) -> float:
     return sum(float(e["wall_s"]) for e in store.events("wall"))
-
-
-def summary(out: Path, suites: Sequence[str], transfer_suite: str) -> str:
-    """The experiment's Markdown summary, built from what the stores recorded."""
-    lines = ["# Evolution experiment", "", "Held-out success of the frozen policy alone (bare) and with the harness "
-             "evolved for the task (final), on the same held-out seeds; Wilson 95 % intervals. Rollouts: every "
-             "valid rollout the task's evolution ran (profiles, validations, regressions, held-out arms).", ""]
-    total = {"bare": [0, 0], "final": [0, 0]}
-    rates: dict[str, list[float]] = {"bare": [], "final": []}
-    for suite in suites:
-        store = RolloutStore(out / suite)
-        finals = {f["task"]: f for f in store.events("final") if f["suite"] == suite}
-        lines += [f"## {suite}", "", "| task | bare | final | delta | harness | rollouts |", "|---|---|---|---|---|---|"]
-        suite_total = {"bare": [0, 0], "final": [0, 0]}
-        for task, f in sorted(finals.items(), key=lambda kv: (len(kv[0]), kv[0])):
-            b, h = f["bare"], f["final"]
-            delta = (h[0] / h[1] if h[1] else 0) - (b[0] / b[1] if b[1] else 0)
-            lines.append(f"| {task} | {_rate(*b)} | {_rate(*h)} | {delta:+.0%} | {f['harness']} | "
-                         f"{len(store.query(task=task))} |")
-            for arm, x in (("bare", b), ("final", h)):
-                suite_total[arm][0] += x[0]
-                suite_total[arm][1] += x[1]
-                total[arm][0] += x[0]
-                total[arm][1] += x[1]
-                rates[arm].append(x[0] / x[1] if x[1] else 0.0)
-        lines += [f"| **all** | {_rate(*suite_total['bare'])} | {_rate(*suite_total['final'])} | | | "
-                  f"{len(store.query())} |", "",
-                  f"Wall time: {_walls(store):.0f} s; invalid attempts rerun: {len(store.invalid_attempts())}; "
-                  f"report: {suite}/report/report.md", ""]
-    if rates["bare"]:
-        lines += ["## Average over every task", "",
-                  f"bare {sum(rates['bare']) / len(rates['bare']):.1%} -> final "
-                  f"{sum(rates['final']) / len(rates['final']):.1%} (mean of per-task rates over "
-                  f"{len(rates['bare'])} tasks); pooled: bare {_rate(*total['bare'])}, final {_rate(*total['final'])}.", ""]
-    tstore_dir = out / f"transfer-{transfer_suite}"
-    if (tstore_dir / "index.sqlite").exists():
-        tstore = RolloutStore(tstore_dir)
-        lines += [f"## Zero-shot transfer to {transfer_suite}", "",
-                  "Each admitted harness on the same task index of a suite it was never evolved on; bare and "
-                  "harness arms on the same held-out seeds.", "",
-                  "| task | harness (evolved on) | bare | harness | delta |", "|---|---|---|---|---|"]
-        for f in tstore.events("transfer_source"):
-            b, h = f["bare"], f["final"]
-            delta = (h[0] / h[1] if h[1] else 0) - (b[0] / b[1] if b[1] else 0)
-            lines.append(f"| {f['task']} | {f['harness']} ({f['source']}) | {_rate(*b)} | {_rate(*h)} | "
-                         f"{delta:+.0%} |")
-        lines += ["", f"Transfer rollouts: {len(tstore.query())}, wall time {_walls(tstore):.0f} s.", ""]
-    return "\n".join(lines) + "\n"
 
 
 def _transfer(out: Path, suites: Sequence[str], transfer_suite: str, seeds: int, run: RunConfig, registry: str,
@@ -125,11 +78,13 @@ def main(argv: Sequence[str]) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--suites", default="libero_goal_task,libero_goal_swap", help="suites to evolve on, comma-separated")
     p.add_argument("--tasks", default="0-9", help="task indices per suite, e.g. 0-9 or 1,6,9")
-    p.add_argument("--rounds", type=int, default=1)
-    p.add_argument("--dev-seeds", type=int, default=20)
-    p.add_argument("--heldout-seeds", type=int, default=20)
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--dev-seeds", type=int, default=EvolveConfig.dev_seeds, help="repair seeds per task")
+    p.add_argument("--heldout-seeds", type=int, default=EvolveConfig.heldout_seeds, help="gate seeds per task")
+    p.add_argument("--test-seeds", type=int, default=EvolveConfig.test_seeds,
+                   help="seeds of the reported number per task (dev + held-out + test <= 50)")
     p.add_argument("--transfer-suite", default="libero_goal", help="suite for zero-shot transfer ('' for none)")
-    p.add_argument("--transfer-seeds", type=int, default=10, help="held-out seeds per transfer task")
+    p.add_argument("--transfer-seeds", type=int, default=20, help="test seeds per transfer task")
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
@@ -143,6 +98,11 @@ def main(argv: Sequence[str]) -> int:
     suites = [s.strip() for s in a.suites.split(",") if s.strip()]
     tasks = task_list(a.tasks)
     bars = Bars(a.no_progress)
+    meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": results.commit(ROOT),
+            "policy": results.policy_provenance(a.model), "control_model": EvolveConfig.control_model,
+            "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,
+                        "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
+                        "execute_steps": a.execute_steps, "max_steps": a.max_steps}}
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
                                           a.out / "stack", False) as ep:
@@ -155,8 +115,12 @@ def main(argv: Sequence[str]) -> int:
                     t0 = time.time()
                     # One registry serves every suite: the suite in the name keeps each task's versions apart.
                     cfg = EvolveConfig(suite=suite, tasks=tasks, rounds=a.rounds, dev_seeds=a.dev_seeds,
-                                       heldout_seeds=a.heldout_seeds, name=f"evolved-{suite}", llm=llm_from_env())
-                    Evolution(cfg, store, run, registry, bars).run()
+                                       heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds,
+                                       name=f"evolved-{suite}", llm=llm_from_env())
+                    try:
+                        Evolution(cfg, store, run, registry, bars).run()
+                    except StoreError as exc:
+                        raise SystemExit(f"zetta evolve experiment: {exc}") from None
                     store.record("wall", {"command": "experiment", "wall_s": time.time() - t0})
                     write_report(store, a.out / suite / "report", f"Evolution on {suite} tasks {a.tasks}",
                                  _walls(store))
@@ -169,7 +133,9 @@ def main(argv: Sequence[str]) -> int:
         print(f"\nstopped; finished rollouts are in {a.out}: run the same command to resume", file=sys.stderr)
         return 130
     bars.close()
-    path = a.out / "summary.md"
-    path.write_text(summary(a.out, suites, a.transfer_suite))
-    print(f"summary: {path}")
+    data = results.collect(a.out, suites, a.transfer_suite, {**meta, "results_path": str(a.out / "results.json")})
+    path = results.write(a.out / "results.json", data)
+    (a.out / "summary.md").write_text("# Evolution experiment\n\n" + results.render(data))
+    print(f"results: {path}\nsummary: {a.out / 'summary.md'}\n"
+          f"docs: python scripts/gen_evolution_tables.py {path} (rewrites docs/evolution.md's results block)")
     return 0

@@ -22,7 +22,7 @@ from services.evolver.trace import Trace
 
 LAYERS = ("eval", "critic", "state", "plan", "recovery", "param")
 #: Intervention outcomes (services/harness/runtime/engine.py) that mean the recovery did its job.
-REENTERED = frozenset({"reentered", "episode_end_success"})
+REENTERED = frozenset({"reentered"})
 
 
 @dataclass(frozen=True)

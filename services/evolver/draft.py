@@ -1,10 +1,13 @@
 """A harness version as the evolver composes it, before it is written as a package directory.
 
-The evolver never writes free-form code: every critic is a library predicate template with
-bounded parameters, every plan maps an evidence kind to a library recovery with its arguments.
+The offline search writes no code: its critics are library predicate templates with bounded
+parameters, every plan maps an evidence kind to a library recovery with its arguments. A critic
+proposed by the LLM backend may be code instead (``CriticDraft.code``: a ``detect(window, params)``
+function); it is rendered as tools/<name>.py and goes through the same loader checks (imports,
+forbidden names), the runtime's signal whitelist and its sandboxed call budget as any package code.
 :func:`render` turns a draft into the agreed package files (SKILL.md with TOML front matter that
-declares library critics and adjudication rules, plans/*.toml playbooks); the critic service
-hashes, checks and versions them. No code is written, so nothing the evolver emits can import.
+declares library critics and adjudication rules, tools/*.py and params/*.toml for code critics,
+plans/*.toml playbooks); the critic service hashes, checks and versions them.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ class CriticDraft:
     #: Kinds of first missing milestone (e.g. "on", "grasped") under which the orchestrator may
     #: grant the recovery: the task knowledge that keeps a critic from acting out of its stage.
     missing: tuple[str, ...] = ()
+    #: Python source defining ``detect(window, params)`` (evidence numbers, or None) for a critic
+    #: an LLM wrote; "" for a library predicate critic. ``template`` is then :data:`CODE_TEMPLATE`.
+    code: str = ""
 
 
 @dataclass(frozen=True)
@@ -41,8 +47,8 @@ class PlanDraft:
     max_uses: int = 3
     #: Actions the intervention may take, the wait for re-entry included: a recovery that cannot
     #: clear its evidence gives control back after this many instead of holding to the episode's end
-    #: (half of LIBERO's 300-step budget for a single template; playbooks set their own).
-    max_steps: int = 150
+    #: (the runtime's cap, services/harness/runtime/limits.py; playbooks may set less).
+    max_steps: int = 80
     #: Library predicate that must hold before re-entry ("" = none).
     clear_when: str = ""
     #: The library playbook this plan instantiates ("" = a bare recovery template); names the mode.
@@ -74,6 +80,7 @@ class HarnessDraft:
         """Identity of the draft's behaviour on its tasks (not its name), for the buffer of rejected
         candidates: a patch refused on one task may still be the answer on another."""
         body = {"tasks": list(self.tasks), "critics": {k: [v.template, dict(sorted(v.params.items())), v.evidence, v.mode, v.priority, list(v.missing)]
+                            + ([hashlib.sha256(v.code.encode()).hexdigest()] if v.code else [])
                             for k, v in sorted(self.critics.items())},
                 "plans": {k: [v.recovery, dict(sorted(v.args.items())), v.max_uses, v.max_steps, v.clear_when]
                           for k, v in sorted(self.plans.items())},
@@ -95,7 +102,7 @@ class HarnessDraft:
         n = 0
         for k in set(self.critics) | set(parent.critics):
             a, b = self.critics.get(k), parent.critics.get(k)
-            if a is None or b is None or a.template != b.template:
+            if a is None or b is None or a.template != b.template or a.code != b.code:
                 n += 1
             else:
                 n += sum(1 for p in set(a.params) | set(b.params) if a.params.get(p) != b.params.get(p))
@@ -107,6 +114,20 @@ class HarnessDraft:
                 n += sum(1 for p in set(a2.args) | set(b2.args) if a2.args.get(p) != b2.args.get(p))
                 n += (a2.max_uses != b2.max_uses) + (a2.max_steps != b2.max_steps) + (a2.clear_when != b2.clear_when)
         return n
+
+
+#: The template name of a code critic (one an LLM wrote), which no library predicate has.
+CODE_TEMPLATE = "code"
+
+
+def code_module(name: str, critic: CriticDraft, mode: str) -> str:
+    """tools/<name>.py of a code critic: its ``detect`` and the critic function that wraps it."""
+    return (f"from services.harness.runtime.api import Proposal\n\n{critic.code.strip()}\n\n\n"
+            f"def critic_main(window, params):\n"
+            f"    \"\"\"Proposes {critic.evidence} whenever detect() returns evidence numbers.\"\"\"\n"
+            f"    details = detect(window, params)\n"
+            f"    return None if details is None else Proposal({json.dumps(name + '.main')}, "
+            f"{json.dumps(critic.evidence)}, {json.dumps(mode)}, dict(details))\n")
 
 
 def _toml_value(v: Any) -> str:
@@ -140,17 +161,22 @@ def render(draft: HarnessDraft) -> dict[str, bytes]:
              f"tasks = {_toml_value(list(draft.tasks))}", "", "[runtime]", f"window = {draft.window_frames()}",
              f"cooldown = {draft.cooldown}", "", "[reentry]", f"gamma = {draft.reentry_gamma!r}",
              f"k = {draft.reentry_k}", ""]
+    files: dict[str, bytes] = {}
     for name, c in sorted(draft.critics.items()):
         plan = draft.plans.get(c.evidence)
         mode = mode_name(c.evidence, plan) if plan else c.mode
-        front += ["[[critics]]", f"name = {json.dumps(name)}", f"predicate = {json.dumps(c.template)}",
-                  f"evidence = {json.dumps(c.evidence)}", f"mode = {json.dumps(mode)}",
-                  f"params = {_inline(c.params)}", ""]
+        if c.code:
+            files[f"tools/{name}.py"] = code_module(name, c, mode).encode()
+            files[f"params/{name}.toml"] = "".join(f"{k} = {_toml_value(v)}\n" for k, v in sorted(c.params.items())).encode()
+        else:
+            front += ["[[critics]]", f"name = {json.dumps(name)}", f"predicate = {json.dumps(c.template)}",
+                      f"evidence = {json.dumps(c.evidence)}", f"mode = {json.dumps(mode)}",
+                      f"params = {_inline(c.params)}", ""]
         front += ["[[adjudication]]", f"evidence = {json.dumps(c.evidence)}", f"mode = {json.dumps(mode)}",
                   f"priority = {c.priority}"] + ([f"missing = {_toml_value(list(c.missing))}"] if c.missing else []) + [""]
     body = "\n# Evolved harness\n\nCritics: " + (", ".join(f"`{k}` ({c.template} -> {c.evidence})"
                                                      for k, c in sorted(draft.critics.items())) or "none") + ".\n"
-    files = {"SKILL.md": ("+++\n" + "\n".join(front) + "\n+++\n" + body).encode()}
+    files["SKILL.md"] = ("+++\n" + "\n".join(front) + "\n+++\n" + body).encode()
     for evidence, p in sorted(draft.plans.items()):
         mode = mode_name(evidence, p)
         parts = p.recovery.split("+")

@@ -1,6 +1,9 @@
 """The three loops end to end for a set of tasks: profile, diagnose/repair/validate, consolidate/gate.
 
-Every rollout goes through the store first, so an interrupted evolution resumes where it stopped:
+Each task has three disjoint splits on disjoint initial states (services/evolver/store.py): dev
+seeds feed profiling, repair, validation, regression and the do-nothing control; held-out (gate)
+seeds feed admission; test seeds are measured once, after every round, and no decision reads them
+(the store refuses any other rollout on a test seed). Every rollout goes through the store first, so an interrupted evolution resumes where it stopped:
 rollouts already filed are read back, never rerun; rejected candidates are never retried; admitted
 versions are recorded as events and re-read on resume.
 """
@@ -19,6 +22,7 @@ import numpy as np
 from services.common.policies import policy_env_config
 from services.evolver.cluster import Cluster, ClusterParams, cluster_failures
 from services.evolver.consolidate import consolidate
+from services.evolver.controls import arm
 from services.evolver.diagnose import REENTERED, Case, RepairSpec, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.eod import EOD, EODParams, t_eod
@@ -30,7 +34,7 @@ from services.evolver.repair import NOT_EVIDENCE, Candidate, ReplayCase, SearchP
 from services.evolver.replay import first_fire, resume_frame
 from services.evolver.rollout import Runner, RunConfig
 from services.evolver.trace import Trace
-from services.evolver.store import DEV, HELDOUT, EpisodeKey, Rollout, RolloutStore
+from services.evolver.store import DEV, HELDOUT, TEST, EpisodeKey, Rollout, RolloutStore
 
 #: progress(phase, done, total): how long-running phases report to a progress bar or a gauge.
 Progress = Callable[[str, int, int], None]
@@ -43,8 +47,12 @@ class EvolveConfig:
     suite: str
     tasks: tuple[str, ...]
     rounds: int = 1
-    dev_seeds: int = 50
-    heldout_seeds: int = 20
+    dev_seeds: int = 20
+    heldout_seeds: int = 10
+    #: Seeds of the reported number (dev + held-out + test <= 50, LIBERO's initial states per task).
+    test_seeds: int = 20
+    #: The served model that plays the do-nothing policy of the control.
+    control_model: str = "do-nothing"
     name: str = "evolved"
     max_clusters: int = 3
     eod: EODParams = EODParams()
@@ -96,7 +104,8 @@ class ClusterRepair:
     def passes(self, gate: GateParams) -> bool:
         """Whether the stack is validated and solved the share of the cluster the gate asks for."""
         s, n = self.regression
-        return bool(self.stack) and self.draft is not None and n > 0 and s / n >= gate.regression_min
+        return (bool(self.stack) and self.draft is not None and len(self.seeds) >= gate.min_cluster
+                and n >= gate.min_cluster and s / n >= gate.regression_min)
 
 
 def _noop(phase: str, done: int, total: int) -> None:
@@ -111,6 +120,9 @@ class Evolution:
         self.cfg = cfg
         self.store = store
         self.runner = Runner(store, run, env_config(cfg.suite, run))
+        control = replace(run, model=cfg.control_model)
+        #: The same harnesses around the do-nothing policy (the control of every table).
+        self.control_runner = Runner(store, control, env_config(cfg.suite, control))
         self.run_cfg = run
         self.registry = registry
         self.progress = progress
@@ -125,7 +137,8 @@ class Evolution:
             if ev["suite"] == self.cfg.suite and ev["task"] in self.state:
                 self.state[ev["task"]] = TaskState(_draft_from(ev["draft"]), ev["ref"])
 
-    def _rollouts(self, keys: Sequence[EpisodeKey], phase: str, round_: int) -> list[Rollout]:
+    def _rollouts(self, keys: Sequence[EpisodeKey], phase: str, round_: int, runner: Runner | None = None
+                  ) -> list[Rollout]:
         total = len(keys)
         done = [0]
 
@@ -134,7 +147,7 @@ class Evolution:
             self.progress(phase, done[0], total)
 
         self.progress(phase, 0, total)
-        return asyncio.run(self.runner.run(keys, round_, tick))
+        return asyncio.run((runner or self.runner).run(keys, round_, tick))
 
     def _keys(self, task: str, seeds: Sequence[int], ref: str, purpose: str) -> list[EpisodeKey]:
         return [EpisodeKey(self.cfg.suite, task, s, ref, purpose) for s in seeds]
@@ -142,9 +155,10 @@ class Evolution:
     # ---- the loops ---------------------------------------------------------------------------------
 
     def run(self) -> None:
-        """Every round for every task, then the final held-out evaluation."""
+        """Every round for every task, then the final measurement on the test seeds."""
         for task in self.cfg.tasks:
-            self.store.assign_splits(self.cfg.suite, task, self.cfg.dev_seeds, self.cfg.heldout_seeds)
+            self.store.assign_splits(self.cfg.suite, task, self.cfg.dev_seeds, self.cfg.heldout_seeds,
+                                     self.cfg.test_seeds)
         for round_ in range(1, self.cfg.rounds + 1):
             for task in self.cfg.tasks:
                 if any(e["round"] == round_ and e["task"] == task and e["suite"] == self.cfg.suite
@@ -193,7 +207,7 @@ class Evolution:
         seen = {r.key for r in rollouts}
         succ = [r for r in rollouts if r.success]
         succ += [r for r in self.store.query(suite=self.cfg.suite, task=task, success=True)
-                 if r.seed in dev and r.key not in seen and r.purpose != "heldout"]
+                 if r.seed in dev and r.key not in seen and r.purpose not in ("heldout", "control")]
         return SuccessIndex.build([self.store.trace(r) for r in succ], fallback=failures)
 
     def _repair_cluster(self, task: str, round_: int, cur: TaskState, cl: Cluster, traces: Sequence[Trace],
@@ -401,12 +415,15 @@ class Evolution:
         fp = merged.fingerprint()
         if self.store.is_rejected(fp):
             return
+        dev_seeds = self.store.seeds(self.cfg.suite, task, DEV)
+        control = self._rollouts(self._keys(task, dev_seeds, ref, "control"), f"r{round_} {task} do-nothing control",
+                                 round_, self.control_runner)
         held_seeds = self.store.seeds(self.cfg.suite, task, HELDOUT)
         held = self._rollouts(self._keys(task, held_seeds, ref, "heldout"), f"r{round_} {task} held-out", round_)
         current = self._rollouts(self._keys(task, held_seeds, cur.ref, "heldout"), f"r{round_} {task} held-out current",
                                  round_)
         bare = self._rollouts(self._keys(task, held_seeds, "", "heldout"), f"r{round_} {task} held-out bare", round_)
-        verdict = judge(reg, held, current, bare, self.cfg.gate)
+        verdict = judge(reg, held, current, bare, control, self.cfg.gate)
         gate_record = {"suite": self.cfg.suite, "task": task, "round": round_, "candidate": ref, "fingerprint": fp,
                        "patches": [p.to_dict() for p in patches], "verdict": verdict.to_dict()}
         self.store.record("gate", gate_record, ident=fp)
@@ -439,13 +456,19 @@ class Evolution:
             (out / rel).write_bytes(data)
 
     def final_eval(self, task: str) -> None:
-        """Held-out success of the bare policy and the final harness on the final held-out seeds."""
-        seeds = self.store.seeds(self.cfg.suite, task, HELDOUT)
+        """The reported number, after every decision: the bare policy, the final harness and the final
+        harness around the do-nothing policy, on the test seeds."""
+        seeds = self.store.seeds(self.cfg.suite, task, TEST)
         ref = self.state[task].ref
-        bare = self._rollouts(self._keys(task, seeds, "", "heldout"), f"final {task} bare", 0)
-        final = bare if not ref else self._rollouts(self._keys(task, seeds, ref, "heldout"), f"final {task} harness", 0)
+        bare = self._rollouts(self._keys(task, seeds, "", "test"), f"final {task} bare", 0)
+        final = bare if not ref else self._rollouts(self._keys(task, seeds, ref, "test"), f"final {task} harness", 0)
+        control = self._rollouts(self._keys(task, seeds, ref, "control-test"), f"final {task} do-nothing control", 0,
+                                 self.control_runner)
         self.store.record("final", {"suite": self.cfg.suite, "task": task, "harness": ref or "bare",
-                                    "bare": list(count(bare)), "final": list(count(final)), "seeds": seeds},
+                                    "bare": list(count(bare)), "final": list(count(final)), "seeds": seeds,
+                                    "arms": {"bare": arm(self.store, bare), "final": arm(self.store, final),
+                                             "control": arm(self.store, control)},
+                                    "split": self.store.split_manifest(self.cfg.suite, task)},
                           ident=f"{self.cfg.suite}/{task}")
 
 
@@ -468,7 +491,8 @@ def _safe(name: str) -> str:
 def _draft_to(d: HarnessDraft) -> dict[str, Any]:
     return {"name": d.name, "tasks": list(d.tasks),
             "critics": {k: {"template": c.template, "params": dict(c.params), "evidence": c.evidence, "mode": c.mode,
-                            "priority": c.priority, "missing": list(c.missing)} for k, c in d.critics.items()},
+                            "priority": c.priority, "missing": list(c.missing), "code": c.code}
+                        for k, c in d.critics.items()},
             "plans": {k: {"recovery": p.recovery, "args": dict(p.args), "max_uses": p.max_uses, "max_steps": p.max_steps,
                           "clear_when": p.clear_when, "playbook": p.playbook} for k, p in d.plans.items()},
             "reentry": [d.reentry_gamma, d.reentry_k], "runtime": [d.window, d.cooldown]}
@@ -483,24 +507,31 @@ def _draft_from(body: dict[str, Any]) -> HarnessDraft:
 
 
 def evaluate_transfer(store: RolloutStore, run: RunConfig, suite: str, tasks: Sequence[str], harness: str, seeds: int,
-                      progress: Progress = _noop) -> list[dict[str, Any]]:
-    """Zero-shot transfer: the bare policy and ``harness`` on the held-out seeds of tasks it never saw."""
-    runner = Runner(store, run, env_config(suite, run))
+                      progress: Progress = _noop, control_model: str = "do-nothing") -> list[dict[str, Any]]:
+    """Zero-shot transfer: the bare policy, ``harness`` and ``harness`` around the do-nothing policy
+    on the test seeds of tasks it never saw."""
+    control = replace(run, model=control_model)
+    runners = {"bare": Runner(store, run, env_config(suite, run)), "harness": Runner(store, run, env_config(suite, run)),
+               "control": Runner(store, control, env_config(suite, control))}
     out = []
     for task in tasks:
-        _, held = store.assign_splits(suite, task, 0, seeds)
-        res = {}
-        for label, ref in (("bare", ""), ("harness", harness)):
-            keys = [EpisodeKey(suite, task, s, ref, "heldout") for s in held]
+        store.assign_splits(suite, task, 0, 0, seeds)
+        held = store.seeds(suite, task, TEST)
+        res: dict[str, list[Rollout]] = {}
+        for label, ref, purpose in (("bare", "", "test"), ("harness", harness, "test"),
+                                    ("control", harness, "control-test")):
+            keys = [EpisodeKey(suite, task, s, ref, purpose) for s in held]
             done = [0]
 
             def tick(_: Rollout, __: bool, label: str = label) -> None:
                 done[0] += 1
                 progress(f"{task} {label}", done[0], len(keys))
 
-            res[label] = count(asyncio.run(runner.run(keys, 0, tick)))
-        rec = {"suite": suite, "task": task, "harness": harness, "bare": list(res["bare"]),
-               "final": list(res["harness"]), "seeds": held, "transfer": True}
+            res[label] = asyncio.run(runners[label].run(keys, 0, tick))
+        rec = {"suite": suite, "task": task, "harness": harness, "bare": list(count(res["bare"])),
+               "final": list(count(res["harness"])), "seeds": held, "transfer": True,
+               "arms": {"bare": arm(store, res["bare"]), "final": arm(store, res["harness"]),
+                        "control": arm(store, res["control"])}}
         store.record("final", rec, ident=f"{suite}/{task}/{harness}")
         out.append(rec)
     return out

@@ -1,9 +1,12 @@
-"""Phase III gates: historical regression on the cluster, then held-out success over the current one.
+"""Phase III gates: historical regression on the cluster, the do-nothing control, then held-out success.
 
 A consolidated candidate is admitted only if (1) it solves at least ``regression_min`` of the
-cluster's seeds (the paper asks for all of them: 1.0) and (2) its held-out success is strictly
-higher than the current harness's on the same held-out seeds. Anything else goes to the buffer of
-rejected candidates (the store's ``rejected`` table) and is never evaluated again.
+seeds of clusters of at least ``min_cluster`` seeds (the paper asks for all of them: 1.0; one seed
+is no regression), (2) the same harness around a do-nothing policy (zero actions) succeeds on at
+most ``max_control`` of the task's dev seeds (a harness that solves the task by itself is not a
+correction of the policy), and (3) its held-out (gate) success is strictly higher than the current
+harness's on the same seeds. Anything else goes to the buffer of rejected candidates (the store's
+``rejected`` table) and is never evaluated again. Test seeds never reach this module.
 """
 
 from __future__ import annotations
@@ -18,9 +21,13 @@ from zetta_wire.stats import wilson
 
 @dataclass(frozen=True)
 class GateParams:
-    """Thresholds of the two gates."""
+    """Thresholds of the gates."""
 
     regression_min: float = 1.0
+    #: Fewest seeds a regression is measured on: a one-seed cluster proves nothing.
+    min_cluster: int = 3
+    #: Largest do-nothing success on the dev seeds a harness may have.
+    max_control: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -33,6 +40,7 @@ class Verdict:
     heldout: tuple[int, int]
     current: tuple[int, int]
     bare: tuple[int, int]
+    control: tuple[int, int] = (0, 0)
 
     @property
     def delta_over_bare(self) -> float:
@@ -47,7 +55,7 @@ class Verdict:
 
         return {"admitted": self.admitted, "reason": self.reason, "regression": block(self.regression),
                 "heldout": block(self.heldout), "current": block(self.current), "bare": block(self.bare),
-                "delta_over_bare": self.delta_over_bare}
+                "control": block(self.control), "delta_over_bare": self.delta_over_bare}
 
 
 def _rate(x: tuple[int, int]) -> float:
@@ -62,25 +70,36 @@ def count(rollouts: Sequence[Rollout]) -> tuple[int, int]:
 def regression_gate(regression: Sequence[Rollout], params: GateParams = GateParams()) -> str | None:
     """Why the candidate fails historical regression, or None when it passes."""
     s, n = count(regression)
-    if n == 0:
-        return "no cluster seed to regress on"
+    if n < params.min_cluster:
+        return f"historical regression on {n} seed(s): it needs clusters of at least {params.min_cluster}"
     if s / n < params.regression_min:
         return f"historical regression {s}/{n} below {params.regression_min:.0%} of the cluster"
     return None
 
 
+def control_gate(control: Sequence[Rollout], params: GateParams = GateParams()) -> str | None:
+    """Why the harness fails the do-nothing control, or None when it passes."""
+    s, n = count(control)
+    if n == 0:
+        return "no do-nothing control was run"
+    if s / n > params.max_control:
+        return (f"the harness around a do-nothing policy succeeds on {s}/{n} dev seeds, over "
+                f"{params.max_control:.0%}: it solves the task by itself")
+    return None
+
+
 def judge(regression: Sequence[Rollout], heldout: Sequence[Rollout], current: Sequence[Rollout],
-          bare: Sequence[Rollout], params: GateParams = GateParams()) -> Verdict:
-    """Both gates; held-out rollouts of candidate, current and bare must be on the same seeds."""
+          bare: Sequence[Rollout], control: Sequence[Rollout], params: GateParams = GateParams()) -> Verdict:
+    """Every gate; held-out rollouts of candidate, current and bare must be on the same seeds."""
     seeds = sorted(r.seed for r in heldout)
     if seeds != sorted(r.seed for r in current) or seeds != sorted(r.seed for r in bare):
         raise ValueError("held-out comparison on different seeds: candidate, current and bare must share them")
-    reg, held, cur, base = count(regression), count(heldout), count(current), count(bare)
-    why = regression_gate(regression, params)
+    reg, held, cur, base, ctl = count(regression), count(heldout), count(current), count(bare), count(control)
+    why = regression_gate(regression, params) or control_gate(control, params)
     if why is not None:
-        return Verdict(False, why, reg, held, cur, base)
+        return Verdict(False, why, reg, held, cur, base, ctl)
     if held[0] <= cur[0]:
         return Verdict(False, f"held-out {held[0]}/{held[1]} is not a strict improvement over the current "
-                              f"harness's {cur[0]}/{cur[1]}", reg, held, cur, base)
-    return Verdict(True, f"held-out {held[0]}/{held[1]} > current {cur[0]}/{cur[1]}; regression {reg[0]}/{reg[1]}",
-                   reg, held, cur, base)
+                              f"harness's {cur[0]}/{cur[1]}", reg, held, cur, base, ctl)
+    return Verdict(True, f"held-out {held[0]}/{held[1]} > current {cur[0]}/{cur[1]}; regression {reg[0]}/{reg[1]}; "
+                         f"do-nothing control {ctl[0]}/{ctl[1]}", reg, held, cur, base, ctl)

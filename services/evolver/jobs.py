@@ -22,11 +22,12 @@ from services.common.policies import DEFAULT_POLICY
 from services.evolver import metrics
 from services.evolver.evolve import EvolveConfig, Evolution
 from services.evolver.gate import GateParams
+from services.evolver.llm import LLMConfig, LLMError, config_from_env
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
 from services.evolver.rollout import RunConfig
-from services.evolver.store import RolloutStore
+from services.evolver.store import INIT_STATES, RolloutStore
 
 log = logging.getLogger("evolver.jobs")
 JOB_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
@@ -67,6 +68,14 @@ class Job:
                                                         "error": self.error, "report": self.report}, indent=2))
 
 
+def _llm() -> LLMConfig | None:
+    """The service's LLM backend, as the CLI reads it (a misconfiguration is a precondition failure)."""
+    try:
+        return config_from_env()
+    except LLMError as exc:
+        raise JobError("precondition", str(exc)) from None
+
+
 def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
     """Defaults applied, bad values refused with a message naming the field."""
     tasks = [str(t) for t in spec.get("tasks", []) if str(t)]
@@ -82,6 +91,14 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
             raise JobError("invalid", f"spec.{key} must not be negative")
     if not 0.0 <= float(spec.get("regression_min", 0.0)) <= 1.0:
         raise JobError("invalid", "spec.regression_min must be in [0, 1]")
+    test = int(spec.get("test_seeds") or EvolveConfig.test_seeds)
+    total = int(spec["dev_seeds"]) + int(spec["heldout_seeds"]) + test
+    if test < 0 or total > INIT_STATES:
+        raise JobError("invalid", f"spec.dev_seeds + heldout_seeds + test_seeds = {total}: the three splits must sit on "
+                                  f"disjoint initial states and a task has {INIT_STATES}")
+    if spec.get("llm") and _llm() is None:
+        raise JobError("precondition", "spec.llm asks for the LLM backend but this evolver service has no "
+                                       "ZETTA_EVOLVER_LLM_URL configured")
     return {"suite": spec["suite"], "tasks": tasks, "rounds": int(spec["rounds"]), "dev_seeds": int(spec["dev_seeds"]),
             "heldout_seeds": int(spec["heldout_seeds"]), "model": spec.get("model") or DEFAULT_POLICY,
             "execute_steps": int(spec.get("execute_steps") or 2), "max_steps": int(spec.get("max_steps") or 0),
@@ -89,7 +106,8 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
             "regression_min": float(spec.get("regression_min") or 1.0),
             "max_clusters": int(spec.get("max_clusters") or EvolveConfig.max_clusters),
             "max_candidates": int(spec.get("max_candidates") or SearchParams.max_candidates),
-            "max_depth": int(spec.get("max_depth") or EvolveConfig.max_depth)}
+            "max_depth": int(spec.get("max_depth") or EvolveConfig.max_depth), "test_seeds": test,
+            "llm": bool(spec.get("llm", False))}
 
 
 class JobManager:
@@ -191,7 +209,9 @@ class JobManager:
             cfg = EvolveConfig(suite=spec["suite"], tasks=tuple(spec["tasks"]), rounds=spec["rounds"],
                                dev_seeds=spec["dev_seeds"], heldout_seeds=spec["heldout_seeds"], name=spec["name"],
                                max_clusters=spec["max_clusters"], search=SearchParams(max_candidates=spec["max_candidates"]),
-                               gate=GateParams(spec["regression_min"]), max_depth=spec["max_depth"])
+                               gate=GateParams(spec["regression_min"]), max_depth=spec["max_depth"],
+                               test_seeds=int(spec.get("test_seeds") or EvolveConfig.test_seeds),
+                               llm=_llm() if spec.get("llm") else None)
             run = RunConfig(gateway=self.gateway, model=spec["model"], execute_steps=spec["execute_steps"],
                             max_steps=spec["max_steps"], concurrency=spec["concurrency"])
             Evolution(cfg, store, run, registry, self._progress(job, store)).run()
@@ -215,14 +235,18 @@ class JobManager:
 
 
 def success_counts(store: RolloutStore) -> list[dict[str, Any]]:
-    """Dev success per round and final held-out success, from the store's events."""
+    """Dev success per round and the final test success (bare, harness, do-nothing control), from the store's events."""
     out = [{"task": p["task"], "round": p["round"], "harness": p["harness"], "successes": p["successes"],
             "episodes": p["episodes"], "arm": "dev"} for p in store.events("profile")]
     for f in store.events("final"):
         out.append({"task": f["task"], "round": 0, "harness": "bare", "successes": f["bare"][0],
-                    "episodes": f["bare"][1], "arm": "heldout_bare"})
+                    "episodes": f["bare"][1], "arm": "test_bare"})
         out.append({"task": f["task"], "round": 0, "harness": f["harness"], "successes": f["final"][0],
-                    "episodes": f["final"][1], "arm": "heldout_final"})
+                    "episodes": f["final"][1], "arm": "test_final"})
+        control = f.get("arms", {}).get("control")
+        if control:
+            out.append({"task": f["task"], "round": 0, "harness": f["harness"], "successes": control["successes"],
+                        "episodes": control["episodes"], "arm": "test_control"})
     return out
 
 

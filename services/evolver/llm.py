@@ -9,7 +9,9 @@ and gates. The offline search never depends on it.
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import urllib.error
 import urllib.request
 from collections.abc import Mapping, Sequence
@@ -17,9 +19,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.diagnose import RepairSpec
-from services.evolver.draft import CriticDraft, HarnessDraft
-from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, library, plan_of, plan_stages,
-                                     playbooks, score_critic)
+from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft
+from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, code_detector, library, plan_of,
+                                     plan_stages, playbooks, score_critic)
 from services.evolver.trace import Trace
 
 
@@ -37,6 +39,18 @@ class LLMConfig:
     timeout_s: float = 60.0
 
 
+def config_from_env() -> LLMConfig | None:
+    """The optional backend of this process: ZETTA_EVOLVER_LLM_URL (+ _MODEL, _API_KEY); None when unset.
+    The CLI and the evolver service read it the same way."""
+    url = os.environ.get("ZETTA_EVOLVER_LLM_URL", "")
+    if not url:
+        return None
+    model = os.environ.get("ZETTA_EVOLVER_LLM_MODEL", "")
+    if not model:
+        raise LLMError("ZETTA_EVOLVER_LLM_URL is set but ZETTA_EVOLVER_LLM_MODEL is not: name the model")
+    return LLMConfig(url, model, os.environ.get("ZETTA_EVOLVER_LLM_API_KEY", ""))
+
+
 def _prompt(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any], recs: Mapping[str, Any]) -> str:
     def schema(entries: Mapping[str, Any]) -> dict[str, Any]:
         return {n: {k: [p.low, p.high, p.default] for k, p in e.params.items()} for n, e in entries.items()}
@@ -46,7 +60,13 @@ def _prompt(spec: RepairSpec, parent: HarnessDraft, preds: Mapping[str, Any], re
                 "object {\"patches\": [{\"critic\": {\"template\": str, \"params\": {}}, \"recovery\": "
                 "{\"template\": str, \"args\": {}}}]}. A recovery template is a recovery, an \"a+b\" chain of "
                 "recoveries (args: one table per part) or a playbook. Templates and parameter ranges "
-                "[low, high, default] below.",
+                "[low, high, default] below. Instead of a template a critic may be code: {\"code\": str, "
+                "\"params\": {name: number}, \"evidence\": str}, Python defining detect(window, params) that "
+                "returns a dict of evidence numbers when the failure shows, else None. It may import math, "
+                "numpy, services.harness.runtime.api and services.harness.runtime.library (tools: vec, scalar, "
+                "grasped, object_box, target_box, eef_object_dist, ...); window.frames[-1].obs holds "
+                "proprioception (robot0_*), phi_* physical signals and milestones; objects only through "
+                "frame.perceive('object'|'target'|'others').",
         "repair_spec": spec.to_dict(),
         "parent_critics": {k: {"template": c.template, "params": dict(c.params), "recovery": c.mode}
                            for k, c in parent.critics.items()},
@@ -109,6 +129,8 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
     from services.harness.runtime.library.schema import resolve
 
     preds, _ = library()
+    if isinstance(patch.get("critic"), Mapping) and "code" in patch["critic"]:
+        return _code_candidate(patch, spec, parent, medoid, members, successes, params, max_edits)
     try:
         template = str(patch["critic"]["template"])
         setting = {str(k): v for k, v in dict(patch["critic"].get("params", {})).items()}
@@ -130,3 +152,40 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
     critic = CriticDraft(template, full, evidence=template, mode=recovery, missing=plan_stages(plan, spec.m_star))
     edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
     return Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits, source="llm"), ""
+
+
+def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase,
+                    members: Sequence[ReplayCase], successes: Sequence[Trace], params: SearchParams,
+                    max_edits: int) -> tuple[Candidate | None, str]:
+    """The candidate of a patch whose critic is code: rendered, loaded through the package loader's
+    checks, built into a runtime (the signal whitelist), then replayed like a template."""
+    from services.harness.package.errors import PackageRejected
+
+    try:
+        code = str(patch["critic"]["code"])
+        setting = {str(k): v for k, v in dict(patch["critic"].get("params", {})).items()}
+        recovery = str(patch["recovery"]["template"])
+        args = {str(k): v for k, v in dict(patch["recovery"].get("args", {})).items()}
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        return None, f"malformed patch {dict(patch)!r}: {exc}"
+    digest = hashlib.sha256(code.encode()).hexdigest()[:8]
+    name = f"c_llm_{digest}"
+    evidence = "".join(ch if ch.isalnum() else "_" for ch in str(patch["critic"].get("evidence") or name))[:40]
+    plan = plan_of(recovery, args)
+    critic = CriticDraft(CODE_TEMPLATE, setting, evidence=evidence, mode=recovery,
+                         missing=plan_stages(plan, spec.m_star), code=code)
+    cand = Candidate(name, critic, plan, -1, 0.0, 0.0, 0, source="llm")
+    why = check_patch(parent, cand, max_edits)
+    if why is not None:
+        return None, why
+    try:
+        detect = code_detector(cand.apply(parent), name)
+    except PackageRejected as exc:
+        return None, f"package rejected: {exc}"
+    res = score_critic(detect, setting, medoid, members, successes, params.window)
+    if res is None:
+        return None, f"{name} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
+    if res[2] > params.max_false_positive:
+        return None, f"{name} fires on {res[2]:.0%} of successful rollouts"
+    edits = cand.apply(parent).edits_from(parent)
+    return Candidate(name, critic, plan, res[0], res[1], res[2], edits, source="llm"), ""

@@ -3,8 +3,8 @@
 For a repair spec (diagnose.RepairSpec) the search proposes patches {C*, R*}: a critic built from a
 library predicate template, with at most ``max_param_edits`` parameters moved off their defaults
 by one grid step inside the template's declared range, paired with a plan: one of the library's
-typed playbooks meant for the kind of m* (multi-step recoveries such as acquire, or acquire and
-place in one intervention; services/harness/runtime/library/playbooks.py) or a recovery template
+typed playbooks meant for the kind of m* (bounded multi-step recoveries such as acquire, place, or
+instruction redirection; services/harness/runtime/library/playbooks.py) or a recovery template
 compatible with the evidence. A critic qualifies only if a diagnostic replay shows it fires within
 ``window`` steps of t_EOD on the medoid; critics are ranked by how many cluster members they also
 catch near their t_EOD, then by how rarely they fire on successful rollouts (false positives), then
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.diagnose import RepairSpec
-from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft, render
+from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft, PlanDraft, render
 from services.evolver.replay import first_fire, resume_frame
 from services.evolver.trace import Trace
 
@@ -31,14 +31,14 @@ from services.evolver.trace import Trace
 COMPATIBLE: dict[str, tuple[str, ...]] = {
     "grasp_lost": ("regrasp", "release_and_restage"),
     "failed_acquisition": ("regrasp", "release_and_restage"),
-    "non_approach": ("pregrasp+regrasp", "pregrasp", "regrasp"),
+    "non_approach": ("pregrasp+regrasp", "redirect_instruction", "pregrasp", "regrasp"),
     "approach_wrong_object": ("pregrasp", "retreat_until_separated"),
-    "stalled_progress": ("pregrasp+regrasp", "release_and_restage", "fine_alignment"),
     "drift": ("regrasp", "release_and_restage"),
     "held_near_target": ("lower_until_supported_then_release", "fine_alignment"),
     "held_stalled_transport": ("fine_alignment+lower_until_supported_then_release", "fine_alignment"),
     "blocked_motion": ("retreat_until_separated", "fine_alignment", "release_and_restage"),
-    "articulation_stalled": ("operate_handle",),
+    "articulation_stalled": ("redirect_instruction",),
+    "stalled_progress": ("pregrasp+regrasp", "redirect_instruction", "release_and_restage", "fine_alignment"),
 }
 #: Predicates that state a healthy condition (used by re-entry and gating), never failure evidence.
 NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})
@@ -297,7 +297,9 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     from services.harness.runtime.library.schema import ParamError, resolve
 
     preds, recs = library()
-    if cand.critic.template not in preds:
+    if cand.critic.code and cand.critic.template != CODE_TEMPLATE:
+        return f"a code critic's template is {CODE_TEMPLATE!r}, not {cand.critic.template!r}"
+    if not cand.critic.code and cand.critic.template not in preds:
         return f"unknown predicate template {cand.critic.template!r}"
     parts = cand.plan.recovery.split("+")
     unknown = [p for p in parts if p not in recs]
@@ -308,7 +310,11 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     if cand.plan.max_steps < 1 or cand.plan.max_uses < 1:
         return "max_steps and max_uses must be >= 1"
     try:
-        resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
+        if cand.critic.code:
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in cand.critic.params.values()):
+                return f"{cand.critic_name}: a code critic's params must be numbers"
+        else:
+            resolve(preds[cand.critic.template].params, cand.critic.params, cand.critic_name)
         for part in parts:
             args = cand.plan.args.get(part, {}) if len(parts) > 1 else cand.plan.args
             resolve(recs[part].params, args, part)
@@ -318,6 +324,14 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     if edits > max_edits:
         return f"patch changes {edits} critics/plans/parameters; at most {max_edits} allowed"
     return build_error(cand.apply(parent))
+
+
+def code_detector(draft: HarnessDraft, name: str) -> Any:
+    """The ``detect`` function of code critic ``name``, imported through the package loader's checks
+    (raises PackageRejected for code the loader refuses)."""
+    from services.harness.package.loader import load_files
+
+    return load_files(render(draft)).tools[name].detect
 
 
 def build_error(draft: HarnessDraft) -> str | None:

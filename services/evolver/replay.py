@@ -1,8 +1,9 @@
 """Diagnostic replay: run critic predicates over a stored trace as the runtime would have.
 
 The runtime feeds critics a sliding window of Frames; the replay rebuilds those frames from the
-trace (observation tensors, the last action that led to each frame, milestones reached so far) and
-reports the first env step at which a predicate held. The trace is recorded at the policy's call
+trace as the runtime builds them (the observation tensors a harness may read, the perception
+tool with its default noise over the recorded state, the last action that led to each frame,
+milestones reached so far) and reports the first env step at which a predicate held. The trace is recorded at the policy's call
 rate, so a window of n frames spans n policy calls here.
 """
 
@@ -13,7 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from services.harness.runtime import signals
 from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.perception import Perception, episode_seed
 from services.evolver.trace import Trace
 
 #: Frames a replayed critic sees at once (the runtime's window is at least this long).
@@ -27,11 +30,15 @@ def frames(trace: Trace) -> list[Frame]:
     for i, k in enumerate(trace.action_frame):
         last_action[int(k)] = trace.actions[i]
     names = trace.milestone_names
-    out = []
+    out: list[Frame] = []
+    perception: Perception | None = None
     for k in range(trace.frames):
         obs = {name: v[k] for name, v in trace.obs.items()}
+        if perception is None:
+            perception = Perception(episode_seed(obs, ""))
         mu = frozenset(n for n, r in zip(names, reached[k]) if r)
-        out.append(Frame(step=int(trace.frame_step[k]), obs=obs, action=last_action.get(k), milestones=mu))
+        out.append(Frame(step=int(trace.frame_step[k]), obs=signals.visible(obs), action=last_action.get(k),
+                         milestones=mu, perceive=perception.sensor(obs)))
     return out
 
 

@@ -1,6 +1,6 @@
 """The evolution report: Markdown plus PNG plots, built only from what the store recorded.
 
-Sections: dev success per round and held-out before/after (Wilson 95 % intervals), the internal
+Sections: dev success per round and test before/after with the do-nothing control (Wilson 95 % intervals), the internal
 versions of each cluster (the paper's v0/v1/v2 curves), the share of actions taken by recoveries
 vs the policy with the interventions by kind, and the lineage of every admitted change.
 """
@@ -65,7 +65,7 @@ def _plot_final(finals: list[dict[str, Any]], path: Path) -> None:
         ys = [f[key][0] / f[key][1] if f[key][1] else 0 for f in finals]
         ax.bar([i + off for i in range(len(finals))], ys, width=0.4, label=name)
     ax.set_xticks(range(len(finals)), labels)
-    ax.set_ylabel("held-out success")
+    ax.set_ylabel("test success")
     ax.set_ylim(0, 1)
     ax.legend()
     fig.tight_layout()
@@ -110,17 +110,27 @@ def write_report(store: RolloutStore, out: Path, title: str, wall_s: float | Non
     lines += [f"Rollouts in the store: {len(rollouts)} valid, {len(store.invalid_attempts())} invalid attempts "
               f"(rerun on the same episode key)." + (f" Wall time: {wall_s:.0f} s." if wall_s is not None else ""), ""]
     if finals:
-        _plot_final(finals, out / "heldout.png")
-        lines += ["## Held-out success, bare policy vs harness", "", "| suite | task | harness | bare | with harness | delta |",
-                  "|---|---|---|---|---|---|"]
+        _plot_final(finals, out / "test.png")
+        lines += ["## Test success (seeds no decision read), bare policy vs harness", "",
+                  "*harness + nothing*: the same harness around a do-nothing policy; *recoveries*: their share of "
+                  "the actions of the harness's successful episodes; *policy at success*: share of those successes "
+                  "with the policy in control at the success step.", "",
+                  "| suite | task | harness | bare | with harness | delta | harness + nothing | recoveries | "
+                  "policy at success |", "|---|---|---|---|---|---|---|---|---|"]
         for f in finals:
             b, h = f["bare"], f["final"]
             delta = (h[0] / h[1] if h[1] else 0) - (b[0] / b[1] if b[1] else 0)
             kind = " (zero-shot transfer)" if f.get("transfer") else ""
-            lines.append(f"| {f['suite']} | {f['task']}{kind} | {f['harness']} | {_rate(*b)} | {_rate(*h)} | {delta:+.0%} |")
+            arms = f.get("arms", {})
+            control = arms.get("control")
+            final = arms.get("final", {})
+            extra = (f"{_rate(control['successes'], control['episodes'])} | {final['recovery_share']:.0%} | "
+                     f"{final['policy_in_control_at_success']:.0%}" if control and final else "- | - | -")
+            lines.append(f"| {f['suite']} | {f['task']}{kind} | {f['harness']} | {_rate(*b)} | {_rate(*h)} | "
+                         f"{delta:+.0%} | {extra} |")
         tb, th = [sum(f[k][0] for f in finals) for k in ("bare", "final")], sum(f["bare"][1] for f in finals)
-        lines += [f"| **all** | | | {_rate(tb[0], th)} | {_rate(tb[1], sum(f['final'][1] for f in finals))} | |",
-                  "", "![held-out](heldout.png)", ""]
+        lines += [f"| **all** | | | {_rate(tb[0], th)} | {_rate(tb[1], sum(f['final'][1] for f in finals))} | | | | |",
+                  "", "![test](test.png)", ""]
     if profiles:
         _plot_rounds(profiles, out / "rounds.png")
         lines += ["## Dev success per round (Loop 1 profile with the round's current harness)", "",

@@ -17,7 +17,7 @@ _STATE = {"pending": evolver_pb2.EVOLUTION_STATE_PENDING, "running": evolver_pb2
           "cancelled": evolver_pb2.EVOLUTION_STATE_CANCELLED}
 _CODES = {"invalid": grpc.StatusCode.INVALID_ARGUMENT, "not_found": grpc.StatusCode.NOT_FOUND,
           "exists": grpc.StatusCode.ALREADY_EXISTS, "exhausted": grpc.StatusCode.RESOURCE_EXHAUSTED,
-          "unavailable": grpc.StatusCode.UNAVAILABLE}
+          "unavailable": grpc.StatusCode.UNAVAILABLE, "precondition": grpc.StatusCode.FAILED_PRECONDITION}
 
 
 def _spec_dict(spec: evolver_pb2.EvolutionSpec) -> dict[str, object]:
@@ -25,7 +25,8 @@ def _spec_dict(spec: evolver_pb2.EvolutionSpec) -> dict[str, object]:
             "heldout_seeds": spec.heldout_seeds, "model": spec.model, "execute_steps": spec.execute_steps,
             "max_steps": spec.max_steps, "concurrency": spec.concurrency, "name": spec.name,
             "regression_min": spec.regression_min, "max_clusters": spec.max_clusters,
-            "max_candidates": spec.max_candidates, "max_depth": spec.max_depth}
+            "max_candidates": spec.max_candidates, "max_depth": spec.max_depth, "test_seeds": spec.test_seeds,
+            "llm": spec.llm}
 
 
 def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
@@ -39,7 +40,8 @@ def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
             heldout_seeds=int(s["heldout_seeds"]), model=str(s["model"]), execute_steps=int(s["execute_steps"]),
             max_steps=int(s["max_steps"]), concurrency=int(s["concurrency"]), name=str(s["name"]),
             regression_min=float(s["regression_min"]), max_clusters=int(s["max_clusters"]),
-            max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", EvolveConfig.max_depth))))
+            max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", EvolveConfig.max_depth)),
+            test_seeds=int(s.get("test_seeds", EvolveConfig.test_seeds)), llm=bool(s.get("llm", False))))
     if (job.root / "store" / "index.sqlite").exists():
         store = RolloutStore(job.root / "store")
         try:

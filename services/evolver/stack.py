@@ -47,7 +47,9 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
              "ZETTA_VLA_BATCH_INVARIANT": os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "1")}
     if video:
         extra["ZETTA_VIDEO_DIR"] = str(workdir / "videos")
-    stack = LocalStack(env_workers=0, slots=slots, policy_workers=1, families=("libero",), models=(model,),
+    # The do-nothing policy is served beside the frozen one: every gate and table has its control.
+    models = (model,) if model == "do-nothing" else (model, "do-nothing")
+    stack = LocalStack(env_workers=0, slots=slots, policy_workers=1, families=("libero",), models=models,
                        workdir=workdir, extra_env=extra, critic=True)
     with stack:
         stack.extra_env = {**extra, "ZETTA_CRITIC_ADDR": stack.critic_address}

@@ -1,11 +1,12 @@
-"""The rollout store: append-only traces and videos on disk, an sqlite index, the dev/held-out split.
+"""The rollout store: append-only traces and videos on disk, an sqlite index, the dev/gate/test splits.
 
 It is the evolution's checkpoint: every finished rollout is on disk before the loop moves on, so a
 stopped ``zetta evolve`` resumes by asking :meth:`RolloutStore.get` for each episode key it needs.
 Valid rollouts and infrastructure-invalid attempts live in separate tables and never mix; an
 invalid attempt is logged and the same episode key is run again. A seed belongs to exactly one
-split per (suite, task); the only way to move it is :meth:`RolloutStore.move_to_dev`, which is
-recorded.
+split per (suite, task): dev (repair), held-out (the gate's admission seeds) or test (the reported
+number, read by no decision); no two seeds of a task share an initial state. The only way to move
+a seed is :meth:`RolloutStore.move_to_dev` (gate -> dev), which is recorded.
 """
 
 from __future__ import annotations
@@ -25,8 +26,13 @@ from typing import Any
 from services.evolver.trace import Trace
 
 DEV = "dev"
+#: The gate's admission seeds (the paper's held-out set of Phase III).
 HELDOUT = "heldout"
-SPLITS = (DEV, HELDOUT)
+#: The reported number's seeds: measured once, after every decision; nothing reads them before.
+TEST = "test"
+SPLITS = (DEV, HELDOUT, TEST)
+#: Purposes of the rollouts a test seed may have: the final measurement, with its do-nothing control.
+TEST_PURPOSES = frozenset({"test", "control-test"})
 #: LIBERO ships 50 fixed initial states per task; an episode seed s uses init state s % 50.
 INIT_STATES = 50
 
@@ -140,21 +146,33 @@ class RolloutStore:
 
     # ---- splits ----------------------------------------------------------------------------
 
-    def assign_splits(self, suite: str, task: str, dev: int, heldout: int) -> tuple[list[int], list[int]]:
-        """Fix the split of a task once: held-out seeds 1..heldout (the paper's LIBERO protocol),
-        dev seeds the next ones. Idempotent: a task that has splits keeps them and only grows to
-        the asked sizes with seeds never used before."""
-        have_dev, have_held = self.seeds(suite, task, DEV), self.seeds(suite, task, HELDOUT)
-        used = set(self._all_seeds(suite, task))
-        candidate = 1
-        while len(have_held) < heldout or len(have_dev) < dev:
-            if candidate not in used:
-                split = HELDOUT if len(have_held) < heldout else DEV
-                self._insert_seed(suite, task, candidate, split)
-                (have_held if split == HELDOUT else have_dev).append(candidate)
-                used.add(candidate)
-            candidate += 1
-        return sorted(have_dev), sorted(have_held)
+    def assign_splits(self, suite: str, task: str, dev: int, heldout: int, test: int = 0
+                      ) -> tuple[list[int], list[int]]:
+        """Fix the splits of a task once: test seeds first (1..test), then held-out (gate) seeds,
+        then dev seeds, each on an initial state no other seed of the task uses. Idempotent: a task
+        that has splits keeps them and only grows to the asked sizes with fresh initial states.
+        Budgets that cannot be disjoint (more seeds than LIBERO's 50 initial states) are refused.
+        Returns (dev, held-out); :meth:`seeds` gives the test seeds."""
+        want = {TEST: test, HELDOUT: heldout, DEV: dev}
+        have = {split: self.seeds(suite, task, split) for split in SPLITS}
+        total = sum(max(want[k], len(have[k])) for k in SPLITS)
+        if total > INIT_STATES:
+            raise StoreError(
+                f"{suite}/{task}: dev {max(dev, len(have[DEV]))} + gate {max(heldout, len(have[HELDOUT]))} + test "
+                f"{max(test, len(have[TEST]))} = {total} seeds, but a task has {INIT_STATES} initial states and the "
+                "splits must not share one: lower --dev-seeds, --heldout-seeds or --test-seeds")
+        for split in (TEST, HELDOUT, DEV):
+            while len(have[split]) < want[split]:
+                seed = self._fresh_seed(suite, task)
+                assert seed is not None  # the budget check above leaves an initial state for every seed
+                self._insert_seed(suite, task, seed, split)
+                have[split].append(seed)
+        return sorted(have[DEV]), sorted(have[HELDOUT])
+
+    def _fresh_seed(self, suite: str, task: str) -> int | None:
+        """The smallest seed whose initial state no seed of the task uses (None when all 50 are taken)."""
+        states = {s % INIT_STATES for s in self._all_seeds(suite, task)}
+        return next((s for s in range(1, INIT_STATES + 1) if s % INIT_STATES not in states), None)
 
     def _insert_seed(self, suite: str, task: str, seed: int, split: str) -> None:
         if split not in SPLITS:
@@ -178,17 +196,21 @@ class RolloutStore:
                                (suite, task, seed)).fetchone()
         return row[0] if row else None
 
-    def move_to_dev(self, suite: str, task: str, seed: int, reason: str) -> int:
+    def move_to_dev(self, suite: str, task: str, seed: int, reason: str) -> int | None:
         """Reclassify a held-out seed that triggered a change as dev, record why, and draw one fresh
-        held-out seed never seen before; returns the fresh seed."""
+        held-out seed on an initial state no seed of the task uses; returns it (None when every
+        initial state is taken: the gate split shrinks by one, and the move records that)."""
         if self.split_of(suite, task, seed) != HELDOUT:
             raise StoreError(f"{suite}/{task} seed {seed} is not a held-out seed")
+        fresh = self._fresh_seed(suite, task)
+        if fresh is None:
+            reason += "; no initial state left for a fresh gate seed"
         with self._lock:
             self._db.execute("UPDATE seeds SET split=? WHERE suite=? AND task=? AND seed=?", (DEV, suite, task, seed))
             self._db.execute("INSERT INTO split_moves (suite, task, seed, from_split, to_split, reason, created_at) "
                              "VALUES (?,?,?,?,?,?,?)", (suite, task, seed, HELDOUT, DEV, reason, time.time()))
-        fresh = max(self._all_seeds(suite, task), default=0) + 1
-        self._insert_seed(suite, task, fresh, HELDOUT)
+        if fresh is not None:
+            self._insert_seed(suite, task, fresh, HELDOUT)
         return fresh
 
     def split_moves(self) -> list[dict[str, Any]]:
@@ -201,6 +223,7 @@ class RolloutStore:
     def split_manifest(self, suite: str, task: str) -> dict[str, Any]:
         """The split as a manifest records it: seeds per split and the moves that changed it."""
         return {"dev": self.seeds(suite, task, DEV), "heldout": self.seeds(suite, task, HELDOUT),
+                "test": self.seeds(suite, task, TEST),
                 "moves": [m for m in self.split_moves() if m["suite"] == suite and m["task"] == task]}
 
     # ---- rollouts ----------------------------------------------------------------------------
@@ -215,6 +238,9 @@ class RolloutStore:
         split = self.split_of(key.suite, key.task, key.seed)
         if split is None:
             raise StoreError(f"{key}: seed {key.seed} has no split for {key.suite}/{key.task}; assign splits first")
+        if (split == TEST) != (key.purpose in TEST_PURPOSES):
+            raise StoreError(f"{key}: seed {key.seed} is a {split} seed; test seeds take only the final measurement "
+                             f"({', '.join(sorted(TEST_PURPOSES))}) and that measurement only test seeds")
         if self.get(key) is not None:
             raise StoreError(f"{key}: a rollout is already filed under this key (the store is append-only)")
         digest = hashlib.sha256(str(key).encode()).hexdigest()[:24]

@@ -14,7 +14,7 @@
                                sharing, and this machine's limit (docs/throughput.md)
   zetta harness publish DIR | list | get REF [--out DIR] | diff A B | pin TASK [REF]
                                versioned harness packages in the critic service's registry
-  zetta evolve --suite SUITE --tasks 6,9 --rounds N [--dev-seeds 50] [--heldout-seeds 20]
+  zetta evolve --suite SUITE --tasks 6,9 --rounds N [--dev-seeds 20] [--heldout-seeds 10] [--test-seeds 20]
                                profile, diagnose, repair, gate; resumable; Markdown report
   zetta eval --harness NAME@VERSION --suite SUITE --tasks ...
                                zero-shot transfer of an evolved harness, bare policy vs harness

@@ -70,7 +70,7 @@ def evolver(evo_stack: Endpoints, tmp_path: Path) -> Iterator[tuple[str, int, su
 
 
 def spec(**kw: object) -> evolver_pb2.EvolutionSpec:
-    base: dict[str, object] = dict(suite="libero_goal", tasks=[TASK], rounds=1, dev_seeds=2, heldout_seeds=1,
+    base: dict[str, object] = dict(suite="libero_goal", tasks=[TASK], rounds=1, dev_seeds=2, heldout_seeds=1, test_seeds=1,
                                    model="scripted-pick-place", max_steps=30, max_clusters=1, max_candidates=1)
     base.update(kw)
     return evolver_pb2.EvolutionSpec(**base)  # type: ignore[arg-type]
@@ -87,6 +87,12 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(tasks=[])), timeout=10)
         assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "tasks" in err.value.details()
         with pytest.raises(grpc.RpcError) as err:
+            stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(dev_seeds=40, heldout_seeds=10)), timeout=10)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "disjoint initial states" in err.value.details()
+        with pytest.raises(grpc.RpcError) as err:
+            stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(llm=True)), timeout=10)
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "ZETTA_EVOLVER_LLM_URL" in err.value.details()
+        with pytest.raises(grpc.RpcError) as err:
             stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id="nope"), timeout=10)
         assert err.value.code() == grpc.StatusCode.NOT_FOUND
         started = stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="j1", spec=spec()), timeout=30).status
@@ -102,9 +108,10 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
                 break
             time.sleep(1.0)
         assert status.state == evolver_pb2.EVOLUTION_STATE_SUCCEEDED, status.error
-        assert status.rollouts >= 3 and Path(status.report_path).exists()  # 2 dev + 1 held-out at least
+        assert status.rollouts >= 4 and Path(status.report_path).exists()  # 2 dev + 1 test + its control at least
         arms = {s.arm for s in status.success}
-        assert {"dev", "heldout_bare", "heldout_final"} <= arms
+        assert {"dev", "test_bare", "test_final", "test_control"} <= arms
+        assert status.spec.test_seeds == 1
         assert [j.job_id for j in stub.ListEvolutions(evolver_pb2.ListEvolutionsRequest(), timeout=10).jobs] == ["j1"]
         refl = reflection_pb2_grpc.ServerReflectionStub(ch)
         names = [s.name for r in refl.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")]))

@@ -6,7 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from services.evolver.cmd_experiment import summary, task_list
+import json
+
+from services.evolver import results
+from services.evolver.cmd_experiment import task_list
 from services.evolver.store import EpisodeKey, RolloutStore
 from tests.unit.test_evolver_store import outcome
 
@@ -19,26 +22,65 @@ def test_task_ranges_and_lists_mix() -> None:
         task_list(" , ")
 
 
-def test_summary_reports_every_task_the_average_and_the_transfer(tmp_path: Path) -> None:
-    """Per task bare vs final with Wilson intervals and its rollouts; per suite totals and wall time;
-    the mean of per-task rates; the transfer rows with the suite/task each harness came from."""
-    for suite, finals in (("libero_goal_task", {"6": ([0, 10], [0, 10], "bare"), "9": ([0, 10], [10, 10], "e-9@1")}),
-                          ("libero_goal_swap", {"9": ([1, 10], [6, 10], "e-9@1")})):
+def _arm(s: int, n: int, seeds: list[int], share: float = 0.0, in_control: float = 1.0) -> dict:
+    from zetta.stats import wilson
+
+    return {"successes": s, "episodes": n, "rate": s / n, "wilson95": list(wilson(s, n)), "seeds": seeds,
+            "recovery_share": share, "policy_in_control_at_success": in_control}
+
+
+def test_results_file_holds_provenance_splits_arms_and_means_and_renders_the_tables(tmp_path: Path) -> None:
+    """The results come from what the stores recorded: every task's test arms (bare, harness, harness
+    around the do-nothing policy) with Wilson intervals, the means, the splits, the transfer rows, the
+    wall time; the tables rendered from them carry the control and who did the work."""
+    seeds = list(range(1, 11))
+    for suite, finals in (("libero_goal_task", {"6": (0, 0, 0, "bare"), "9": (0, 10, 0, "e-9@1")}),
+                          ("libero_goal_swap", {"9": (1, 6, 1, "e-9@1")})):
         store = RolloutStore(tmp_path / suite)
-        for task, (bare, final, ref) in finals.items():
-            store.assign_splits(suite, task, dev=2, heldout=1)
-            store.add(EpisodeKey(suite, task, 2, "", "profile"), outcome("miss", 1))
-            store.record("final", {"suite": suite, "task": task, "harness": ref, "bare": bare, "final": final,
-                                   "seeds": [1]}, ident=f"{suite}/{task}")
+        for task, (b, f, c, ref) in finals.items():
+            store.assign_splits(suite, task, dev=2, heldout=1, test=1)
+            store.add(EpisodeKey(suite, task, 3, "", "profile"), outcome("miss", 1))
+            store.record("final", {"suite": suite, "task": task, "harness": ref, "bare": [b, 10], "final": [f, 10],
+                                   "seeds": seeds, "split": store.split_manifest(suite, task),
+                                   "arms": {"bare": _arm(b, 10, seeds), "final": _arm(f, 10, seeds, 0.25, 0.9),
+                                            "control": _arm(c, 10, seeds)}}, ident=f"{suite}/{task}")
         store.record("wall", {"command": "experiment", "wall_s": 100.0})
         store.record("wall", {"command": "experiment", "wall_s": 20.0})
     transfer = RolloutStore(tmp_path / "transfer-libero_goal")
-    transfer.record("transfer_source", {"suite": "libero_goal", "task": "9", "harness": "e-9@1", "bare": [3, 10],
-                                        "final": [5, 10], "source": "libero_goal_task/9"})
-    text = summary(tmp_path, ["libero_goal_task", "libero_goal_swap"], "libero_goal")
-    assert "| 9 | 0/10 = 0% [0%, 28%] | 10/10 = 100% [72%, 100%] | +100% | e-9@1 | 1 |" in text
-    assert "| **all** | 0/20 = 0% [0%, 16%] | 10/20 = 50% [30%, 70%] | | | 2 |" in text
-    assert "Wall time: 120 s" in text
-    # Mean of per-task rates: bare (0 + 0 + 10 %) / 3, final (0 + 100 + 60 %) / 3.
-    assert "bare 3.3% -> final 53.3%" in text and "pooled: bare 1/30" in text
-    assert "| 9 | e-9@1 (libero_goal_task/9) | 3/10 = 30%" in text
+    transfer.record("transfer_source", {"suite": "libero_goal", "task": "9", "harness": "e-9@1", "source":
+                                        "libero_goal_task/9", "arms": {"bare": _arm(3, 10, seeds),
+                                                                       "final": _arm(5, 10, seeds),
+                                                                       "control": _arm(0, 10, seeds)}})
+    meta = {"command": "zetta evolve experiment --tasks 6,9", "source": {"commit": "abc123def4567890", "dirty": False},
+            "policy": {"model": "zetta-vla-state", "checkpoint_sha256": "f" * 64}, "control_model": "do-nothing"}
+    data = results.collect(tmp_path, ["libero_goal_task", "libero_goal_swap"], "libero_goal", meta)
+    task = data["suites"]["libero_goal_task"]
+    assert [t["task"] for t in task["tasks"]] == ["6", "9"] and task["mean"]["final"] == pytest.approx(0.5)
+    assert task["tasks"][1]["split"]["test"] == [1] and data["wall_s"]["libero_goal_task"] == 120.0
+    assert data["transfer"][0]["source"] == "libero_goal_task/9"
+    path = results.write(tmp_path / "results.json", data)
+    text = results.render(json.loads(path.read_text()))
+    assert "commit `abc123def456`" in text and "checkpoint sha256 `ffffffffffffffff`" in text
+    assert "| 9 | 0/10 = 0% [0%, 28%] | 10/10 = 100% [72%, 100%] | +100% | 0/10 = 0% [0%, 28%] | 25% | 90% | e-9@1 |" \
+        in text
+    assert "| **mean** | 0.0% | 50.0% | +50.0% | 0.0% |" in text
+    assert "| libero_goal | 9 | e-9@1 (libero_goal_task/9) | 3/10 = 30%" in text
+
+
+def test_the_docs_block_is_replaced_and_checked_by_the_generator(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    data = {"schema": 1, "policy": {"model": "m"}, "source": {"commit": "c"}, "suites": {}, "transfer": []}
+    (tmp_path / "results.json").write_text(json.dumps(data))
+    doc = tmp_path / "page.md"
+    doc.write_text(f"# Page\n\n{results.BEGIN}\ntyped by hand\n{results.END}\n\nafter\n")
+    script = Path(__file__).resolve().parents[2] / "scripts" / "gen_evolution_tables.py"
+    check = [sys.executable, str(script), str(tmp_path / "results.json"), "--doc", str(doc), "--check"]
+    assert subprocess.run(check, capture_output=True).returncode == 1
+    subprocess.run(check[:-1], check=True, capture_output=True)
+    page = doc.read_text()
+    assert "typed by hand" not in page and "policy `m`" in page and page.endswith("after\n")
+    assert subprocess.run(check, capture_output=True).returncode == 0
+    with pytest.raises(ValueError, match="BEGIN GENERATED"):
+        results.replace_block("no marks", "x")

@@ -59,9 +59,12 @@ def test_report_from_recorded_events(tmp_path: Path) -> None:
     s.record("admitted", {"suite": "g", "task": "6", "round": 1, "ref": "e-6@1", "parent": "bare", "verdict": verdict,
                           "patches": [{"critic": "c_grasp_lost", "template": "grasp_lost", "params": {"confirm": 3},
                                        "recovery": "regrasp"}]})
-    s.record("final", {"suite": "g", "task": "6", "harness": "e-6@1", "bare": [1, 2], "final": [2, 2], "seeds": [1, 4]})
+    arm = {"successes": 0, "episodes": 2, "recovery_share": 0.25, "policy_in_control_at_success": 1.0}
+    s.record("final", {"suite": "g", "task": "6", "harness": "e-6@1", "bare": [1, 2], "final": [2, 2], "seeds": [1, 4],
+                       "arms": {"final": arm, "control": arm}})
     md = write_report(s, tmp_path / "report", "Evolution test", wall_s=12.0).read_text()
+    assert "| +50% | 0/2 = 0% [0%, 66%] | 25% | 100% |" in md
     assert "1/2 = 50% [9%, 91%]" in md and "v0 0/3, v1 2/3" in md and "ADMITTED" in md
     assert "e-6@1 (parent bare, round 1): c_grasp_lost(grasp_lost" in md and "+50%" in md
-    for png in ("rounds.png", "versions.png", "heldout.png"):
+    for png in ("rounds.png", "versions.png", "test.png"):
         assert (tmp_path / "report" / png).stat().st_size > 1000

@@ -35,29 +35,38 @@ def test_library_playbooks_are_well_typed() -> None:
 def test_serving_matches_the_stage_and_what_the_evidence_says_about_the_grasp() -> None:
     """A playbook that needs the object in hand is never offered for a drop; for an object in hand
     the playbook written for it comes before those that let go first; otherwise the longest first;
-    no pick-and-place playbook serves a drawer (the articulation playbook does)."""
-    assert [p.name for p in serving("reached", holding=False)] == ["carry", "acquire"]
-    assert [p.name for p in serving("on", holding=False)] == ["carry", "acquire"]
-    assert [p.name for p in serving("on", holding=True)] == ["place", "carry", "acquire"]
-    assert [p.name for p in serving("on", holding=None)] == ["carry", "place", "acquire"]
-    assert [p.name for p in serving("open")] == ["operate"]
+    no pick-and-place playbook serves a drawer (instruction redirection does)."""
+    assert [p.name for p in serving("reached", holding=False)] == ["acquire", "redirect"]
+    assert [p.name for p in serving("on", holding=False)] == ["acquire", "redirect"]
+    assert [p.name for p in serving("on", holding=True)] == ["place", "acquire", "redirect"]
+    assert [p.name for p in serving("on", holding=None)] == ["place", "acquire", "redirect"]
+    assert [p.name for p in serving("open")] == ["redirect"]
+
+
+def test_no_playbook_runs_the_task_or_outlasts_the_intervention_cap() -> None:
+    """The whole-task playbooks are gone: nothing both acquires and places, nothing exceeds the cap."""
+    from services.harness.runtime.limits import INTERVENTION_CAP
+
+    assert not any("regrasp" in p.steps and "lower_until_supported_then_release" in p.steps for p in PLAYBOOKS.values())
+    assert max(p.max_steps for p in PLAYBOOKS.values()) <= INTERVENTION_CAP
+    assert "operate_handle" not in RECOVERIES
 
 
 def test_plan_of_a_playbook_carries_its_budgets_and_steps() -> None:
     """A playbook name becomes the chain of its steps with its budgets; a template name stays itself."""
-    carry = plan_of("carry")
-    assert carry.recovery.split("+") == list(PLAYBOOKS["carry"].steps) and carry.playbook == "carry"
-    assert (carry.max_steps, carry.max_uses) == (PLAYBOOKS["carry"].max_steps, PLAYBOOKS["carry"].max_uses)
+    place = plan_of("place")
+    assert place.recovery.split("+") == list(PLAYBOOKS["place"].steps) and place.playbook == "place"
+    assert (place.max_steps, place.max_uses) == (PLAYBOOKS["place"].max_steps, PLAYBOOKS["place"].max_uses)
     acquire = plan_of("acquire", {"regrasp": {"max_attempts": 2}})
     assert acquire.recovery == "regrasp" and acquire.clear_when == "grasp_retained"
     assert acquire.args == {"max_attempts": 2}
     assert plan_of("pregrasp").playbook == "" and plan_of("pregrasp").recovery == "pregrasp"
 
 
-def test_a_policy_that_never_reaches_the_object_is_offered_a_carry_first() -> None:
+def test_a_policy_that_never_reaches_the_object_is_offered_acquisition_then_redirection() -> None:
     """A miss cluster (m* = reached, no success to compare with) gets a non_approach critic paired
-    first with the playbook that acquires and places the object, then with acquisition alone,
-    granted at every pick-and-place stage; nothing that needs the object in hand is offered."""
+    first with a bounded acquisition, then with instruction redirection, granted at every
+    pick-and-place stage; nothing that needs the object in hand is offered."""
     misses = [make_trace("miss", s) for s in range(4, 8)]
     index = SuccessIndex.build([])
     eods = [t_eod(t, index) for t in misses]
@@ -67,13 +76,13 @@ def test_a_policy_that_never_reaches_the_object_is_offered_a_carry_first() -> No
     medoid = ReplayCase(misses[0], eods[0].step, eods[0].referenced)
     members = [ReplayCase(t, e.step, e.referenced) for t, e in zip(misses[1:], eods[1:])]
     cands = search(spec, PARENT, medoid, members, [], SearchParams(max_candidates=4))
-    assert [c.plan.playbook for c in cands[:2]] == ["carry", "acquire"]
+    assert [c.plan.playbook for c in cands[:2]] == ["acquire", "redirect"]
     assert cands[0].critic.template == "non_approach" and cands[0].coverage == 1.0
     assert {"reached", "on"} <= set(cands[0].critic.missing)
     assert all(c.plan.playbook != "place" for c in cands)
     runtime = HarnessRuntime(load_files(render(cands[0].apply(PARENT))))
-    plan = runtime.plans["carry_on_non_approach"]
-    assert plan.max_steps == PLAYBOOKS["carry"].max_steps and plan.max_uses == PLAYBOOKS["carry"].max_uses
+    plan = runtime.plans["acquire_on_non_approach"]
+    assert plan.max_steps == PLAYBOOKS["acquire"].max_steps and plan.max_uses == PLAYBOOKS["acquire"].max_uses
 
 
 def test_rendered_window_covers_every_critic_horizon() -> None:
@@ -90,13 +99,16 @@ def test_rendered_window_covers_every_critic_horizon() -> None:
 
 
 def test_a_cluster_repair_passes_only_when_validated_and_solving_its_whole_cluster() -> None:
-    """Historical regression is measured per cluster with its own stack; 4/5 does not pass at 100 %."""
-    cand = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "carry"), plan_of("carry"),
+    """Historical regression is measured per cluster with its own stack; 4/5 does not pass at 100 %;
+    a cluster of fewer than 3 seeds never passes."""
+    cand = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "acquire"), plan_of("acquire"),
                      40, 1.0, 0.0, 2)
     assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3], (3, 3), "e@1").passes(GateParams(1.0))
-    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(1.0))
-    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (4, 5), "e@1").passes(GateParams(0.8))
+    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3, 4, 5], (4, 5), "e@1").passes(GateParams(1.0))
+    assert ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2, 3, 4, 5], (4, 5), "e@1").passes(GateParams(0.8))
     assert not ClusterRepair({}, [], None, [1], (0, 1), "").passes(GateParams(0.0))
+    # One- and two-seed clusters prove nothing, whatever they solve.
+    assert not ClusterRepair({}, [cand], cand.apply(PARENT), [1, 2], (2, 2), "e@1").passes(GateParams(1.0))
 
 
 def test_reference_index_takes_dev_successes_of_any_harness_but_never_heldout(tmp_path: Path) -> None:

@@ -61,7 +61,7 @@ def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     assert cands and cands[0].critic.template == "grasp_lost"
     best = cands[0]
     assert abs(best.fire_step - medoid.t_eod) <= 40 and best.coverage == 1.0 and best.false_positive == 0.0
-    assert best.plan.playbook == "carry" and best.plan.recovery.startswith("regrasp+") and "on" in best.critic.missing
+    assert best.plan.playbook == "acquire" and best.plan.recovery == "regrasp" and "on" in best.critic.missing
     assert all(c.plan.playbook != "place" for c in cands)
     assert check_patch(PARENT, best, max_edits=3) is None
     runtime = HarnessRuntime(load_files(render(best.apply(PARENT))))
@@ -173,3 +173,46 @@ def test_llm_errors_are_clear(llm_server: str) -> None:
         propose(LLMConfig(llm_server, "tiny"), spec, PARENT, medoid, members, succ)
     with pytest.raises(LLMError, match="no usable completion"):
         propose(LLMConfig("http://127.0.0.1:9/v1", "tiny", timeout_s=2), spec, PARENT, medoid, members, succ)
+
+
+#: A critic an LLM might write: the object was held, is no longer, and the gripper is still closed.
+DROP_CODE = '''
+from services.harness.runtime.library import tools
+
+
+def detect(window, params):
+    n = int(params["confirm"])
+    frames = window.frames
+    if len(frames) < n + 5 or any(tools.grasped(f) for f in frames[-n:]):
+        return None
+    held = sum(1 for f in frames[:-n] if tools.grasped(f))
+    if held < 5 or tools.gripper_command(window.now.action) <= 0.0:
+        return None
+    return {"held_steps": float(held)}
+'''
+
+
+def test_llm_critic_code_passes_the_loader_the_signal_whitelist_and_the_replay(llm_server: str) -> None:
+    """A critic written as code is rendered as tools/<name>.py, replayed like a template and, if it
+    fires near t_EOD, becomes a candidate that builds a runtime; code that imports os or reads the
+    simulator's boxes is refused with the loader's or the whitelist's reason."""
+    spec, medoid, members, succ = drop_cluster()
+    peek = "def detect(window, params):\n    return {'z': float(window.now.obs.get('task_object_bbox', [0])[0])}\n"
+    _Handler.reply = json.dumps({"patches": [
+        {"critic": {"code": DROP_CODE, "params": {"confirm": 3}, "evidence": "dropped"},
+         "recovery": {"template": "acquire"}},
+        {"critic": {"code": "import os\n\ndef detect(window, params):\n    return None\n", "params": {}},
+         "recovery": {"template": "regrasp"}},
+        {"critic": {"code": peek, "params": {}}, "recovery": {"template": "regrasp"}},
+    ]})
+    accepted, refused = propose(LLMConfig(llm_server, "tiny"), spec, PARENT, medoid, members, succ)
+    assert len(accepted) == 1 and accepted[0].source == "llm" and accepted[0].critic.code == DROP_CODE
+    cand = accepted[0]
+    assert cand.critic.template == "code" and cand.critic.evidence == "dropped" and cand.plan.playbook == "acquire"
+    assert abs(cand.fire_step - medoid.t_eod) <= 40
+    files = render(cand.apply(PARENT))
+    assert f"tools/{cand.critic_name}.py" in files and b"def critic_main" in files[f"tools/{cand.critic_name}.py"]
+    runtime = HarnessRuntime(load_files(files))
+    assert [c.name for c in runtime.critics] == [f"{cand.critic_name}.main"]
+    assert any("'os' is not allowed" in r for r in refused) and any("task_object_bbox" in r for r in refused)
+    assert "detect(window, params)" in _Handler.seen[-1]["body"]["messages"][1]["content"]

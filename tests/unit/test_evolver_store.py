@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.evolver.store import DEV, HELDOUT, EpisodeKey, Outcome, RolloutStore, StoreError
+from services.evolver.store import DEV, HELDOUT, INIT_STATES, TEST, EpisodeKey, Outcome, RolloutStore, StoreError
 from tests.unit.test_evolver_fixtures import make_trace
 
 
@@ -30,8 +30,38 @@ def test_splits_are_disjoint_stable_and_growable(tmp_path: Path) -> None:
     assert s.assign_splits("libero_goal", "9", dev=1, heldout=1) == ([2], [1])
 
 
+def test_three_splits_sit_on_disjoint_initial_states_and_refuse_budgets_that_cannot(tmp_path: Path) -> None:
+    """Test seeds first, then gate, then dev; no two seeds of a task share an initial state (seed % 50);
+    a budget over LIBERO's 50 initial states is refused with a message naming the budgets."""
+    s = RolloutStore(tmp_path)
+    dev, held = s.assign_splits("g", "6", dev=20, heldout=10, test=20)
+    test = s.seeds("g", "6", TEST)
+    assert test == list(range(1, 21)) and held == list(range(21, 31)) and dev == list(range(31, 51))
+    assert len({x % INIT_STATES for x in dev + held + test}) == 50
+    with pytest.raises(StoreError, match="dev 20 \\+ gate 10 \\+ test 21 = 51 seeds"):
+        s.assign_splits("g", "6", dev=20, heldout=10, test=21)
+    with pytest.raises(StoreError, match="50 initial states"):
+        s.assign_splits("g", "9", dev=50, heldout=20)
+    # Every initial state is taken: a gate seed that moves to dev is not replaced, and that is recorded.
+    assert s.move_to_dev("g", "6", 21, "triggered a change") is None
+    assert "no initial state left" in s.split_moves()[-1]["reason"] and s.seeds("g", "6", HELDOUT) == held[1:]
+
+
+def test_test_seeds_take_only_the_final_measurement(tmp_path: Path) -> None:
+    """No decision reads a test outcome: the store refuses a profile, regression or gate rollout on a
+    test seed, and a final measurement on any other seed."""
+    s = RolloutStore(tmp_path)
+    s.assign_splits("g", "6", dev=1, heldout=1, test=1)
+    for purpose in ("profile", "regress", "heldout", "control"):
+        with pytest.raises(StoreError, match="test seeds take only the final measurement"):
+            s.add(EpisodeKey("g", "6", 1, "", purpose), outcome("miss"))
+    with pytest.raises(StoreError, match="test seeds take only"):
+        s.add(EpisodeKey("g", "6", 3, "", "test"), outcome("miss"))
+    assert s.add(EpisodeKey("g", "6", 1, "h@1", "control-test"), outcome("miss")).split == TEST
+
+
 def test_move_to_dev_is_recorded_and_draws_a_fresh_heldout_seed(tmp_path: Path) -> None:
-    """Only a held-out seed can move; the move is logged and a never-used seed replaces it."""
+    """Only a held-out seed can move; the move is logged and a seed on an unused initial state replaces it."""
     s = RolloutStore(tmp_path)
     dev, held = s.assign_splits("g", "6", dev=2, heldout=2)
     fresh = s.move_to_dev("g", "6", 1, "triggered a change in round 1")

@@ -10,7 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.harness.runtime import signals
 from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.perception import NoiseModel, Perception
 from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, ParamError, resolve
 from services.harness.runtime.library import tools as t
 from services.harness.runtime.library.recoveries import DONE, FAILED, Chain
@@ -19,7 +21,7 @@ OBJ = np.array([0.0, 0.0, 0.90, 0.04, 0.03, 0.95])  # a 4 x 3 x 5 cm object on a
 BOWL = np.array([0.20, -0.06, 0.90, 0.32, 0.06, 0.96])
 
 
-def state(eef=(0.02, 0.015, 1.05), obj=OBJ, target=BOWL, grasp=0.0, aperture=0.08, drift=0.0, vel=None,
+def state(eef=(0.02, 0.015, 1.05), obj=OBJ, target=BOWL, grasp=0.0, aperture=0.08, drift=0.0,
           force=(0.0, 0.0, 0.0), motion=(0.0,) * 6, others=()) -> dict[str, np.ndarray]:
     eef = np.asarray(eef, dtype=np.float64)
     obj = np.asarray(obj, dtype=np.float64)
@@ -36,7 +38,6 @@ def state(eef=(0.02, 0.015, 1.05), obj=OBJ, target=BOWL, grasp=0.0, aperture=0.0
         "phi_gripper_aperture": np.array([aperture]),
         "phi_eef_object_dist": np.array([float(np.linalg.norm(gap))]),
         "phi_object_gripper_drift": np.array([drift]),
-        "phi_object_vel": np.zeros(6) if vel is None else np.asarray(vel, dtype=np.float64),
         "phi_contact_force": np.asarray(force, dtype=np.float64),
         "phi_eef_motion": np.asarray(motion, dtype=np.float64),
         "phi_collision_intensity": np.array([0.0]),
@@ -44,11 +45,20 @@ def state(eef=(0.02, 0.015, 1.05), obj=OBJ, target=BOWL, grasp=0.0, aperture=0.0
     }
 
 
+#: A detector without noise: these tests are about the predicates' and recoveries' logic.
+EXACT = Perception(0, NoiseModel(0.0, 0.0, 0.0, 0.0, 0.0))
+
+
+def frame(step: int, obs: dict[str, np.ndarray], action, milestones: frozenset[str]) -> Frame:
+    """A frame as the runtime builds it: the readable signals and the perception tool over ``obs``."""
+    return Frame(step, signals.visible(obs), action, milestones, EXACT.sensor(obs))
+
+
 def window(states, actions=None, milestones=None) -> Window:
     frames = []
     for i, s in enumerate(states):
         a = None if actions is None else actions[i]
-        frames.append(Frame(i, s, a, frozenset(milestones[i]) if milestones else frozenset()))
+        frames.append(frame(i, s, a, frozenset(milestones[i]) if milestones else frozenset()))
     return Window(tuple(frames), "put the object in the bowl", ())
 
 
@@ -132,7 +142,8 @@ def test_held_near_target_and_stalled_transport() -> None:
 def test_supported_placement_needs_the_object_at_rest_on_or_in_the_target() -> None:
     inside = np.array([0.24, -0.015, 0.91, 0.28, 0.015, 0.96])
     assert holds("supported_placement", window([state(obj=inside)]))
-    assert not holds("supported_placement", window([state(obj=inside, vel=[0.3, 0, 0, 0, 0, 0])]))
+    sliding = [state(obj=inside + [0.015 * (i - 5), 0, 0, 0.015 * (i - 5), 0, 0]) for i in range(6)]  # 0.3 m/s
+    assert not holds("supported_placement", window(sliding))
     assert not holds("supported_placement", window([state(obj=OBJ)]))  # beside the bowl
     assert not holds("supported_placement", window([state(obj=inside + [0, 0, 0.1, 0, 0, 0.1])]))  # in the air
 
@@ -149,10 +160,11 @@ def test_contact_stability_falls_with_speed_and_force_oscillation() -> None:
 
     p = resolve(STABILITY_PARAMS, {}, "stability")
     rest = contact_stability(window([state(force=(0, 0, 5.0))] * 5), p)
-    moving = contact_stability(window([state(vel=[0.1, 0, 0, 0, 0, 0])] * 5), p)
+    moving = contact_stability(window([state(obj=OBJ + [0.01 * i, 0, 0, 0.01 * i, 0, 0]) for i in range(11)]), p)
+    hand = contact_stability(window([state(eef=(0.02 + 0.01 * i, 0.015, 1.05)) for i in range(11)]), p)
     shaking = contact_stability(window([state(force=(0, 0, 20.0 * (i % 2))) for i in range(5)]), p)
     assert rest == pytest.approx(1.0)
-    assert moving < 0.2 and shaking < 0.2
+    assert moving < 0.2 and shaking < 0.2 and hand < 0.2
 
 
 def test_parameters_are_checked_against_the_schema() -> None:
@@ -267,14 +279,14 @@ class Toy:
 def drive(name: str, toy: Toy, steps: int = 400, memory: EpisodeMemory | None = None, **overrides):
     spec = RECOVERIES[name]
     rec = spec.factory(resolve(spec.params, overrides, name))
-    frames = [Frame(0, toy.obs(), None, frozenset())]
+    frames = [frame(0, toy.obs(), None, frozenset())]
     rec.start(Window(tuple(frames), "", ()), memory or EpisodeMemory())
     for i in range(steps):
         action = rec.act(Window(tuple(frames[-40:]), "", ()))
         if action is None:
             return rec, i
         toy.apply(action)
-        frames.append(Frame(i + 1, toy.obs(), action, frozenset()))
+        frames.append(frame(i + 1, toy.obs(), action, frozenset()))
     return rec, steps
 
 
@@ -297,11 +309,11 @@ def test_pregrasp_reaches_hover_over_a_fresh_grasp_rising_over_obstacles() -> No
     heights = []
     spec = RECOVERIES["pregrasp"]
     rec = spec.factory(resolve(spec.params, {}, "pregrasp"))
-    frames = [Frame(0, toy.obs(), None, frozenset())]
+    frames = [frame(0, toy.obs(), None, frozenset())]
     rec.start(Window(tuple(frames), "", ()), EpisodeMemory())
     while (a := rec.act(Window(tuple(frames), "", ()))) is not None:
         toy.apply(a)
-        frames.append(Frame(len(frames), toy.obs(), a, frozenset()))
+        frames.append(frame(len(frames), toy.obs(), a, frozenset()))
         if BOWL[0] <= toy.eef[0] <= BOWL[3]:
             heights.append(toy.eef[2])
     assert rec.status == DONE
@@ -350,14 +362,14 @@ def test_place_chain_aligns_lowers_releases_and_retreats() -> None:
     toy.grasp, toy.aperture = True, 0.03
     specs = [RECOVERIES[n] for n in ("fine_alignment", "lower_until_supported_then_release", "retreat_until_separated")]
     chain = Chain([s.factory(resolve(s.params, {}, s.name)) for s in specs])
-    frames = [Frame(0, toy.obs(), None, frozenset())]
+    frames = [frame(0, toy.obs(), None, frozenset())]
     chain.start(Window(tuple(frames), "", ()), EpisodeMemory())
     for _ in range(400):
         a = chain.act(Window(tuple(frames[-40:]), "", ()))
         if a is None:
             break
         toy.apply(a)
-        frames.append(Frame(len(frames), toy.obs(), a, frozenset()))
+        frames.append(frame(len(frames), toy.obs(), a, frozenset()))
     assert chain.status == DONE
     c = t.box_center(toy.obj)
     assert BOWL[0] < c[0] < BOWL[3] and BOWL[1] < c[1] < BOWL[4] and toy.obj[2] < BOWL[5]  # in the bowl

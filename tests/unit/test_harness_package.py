@@ -339,6 +339,14 @@ async def test_probe_rejects_a_package_that_makes_no_runnable_harness() -> None:
     assert "no plan defines" in info.value.problems[0].reason
 
 
+async def test_probe_refuses_a_package_that_reads_the_simulators_boxes() -> None:
+    """What a harness may read is checked at publish: a critic naming the goal's target box is refused."""
+    peek = "def critic_peek(window, params):\n    return window.now.obs.get('task_target_bbox')\n"
+    with pytest.raises(PackageRejected) as info:
+        await probe_import(with_tool(peek, name="peek"), timeout_s=60, max_bytes=fmt.MAX_PACKAGE_BYTES)
+    assert "tools/peek.py: reads task_target_bbox, which a harness may not read at run time" in str(info.value)
+
+
 async def test_probe_reports_the_loader_problems_and_ignores_prints() -> None:
     files = with_tool("print('noise on stdout')\nx = [][1]\n", name="noisy")
     with pytest.raises(PackageRejected) as info:

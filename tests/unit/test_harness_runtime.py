@@ -26,8 +26,8 @@ from services.harness.runtime.api import Proposal
 
 def critic_flag(window, params):
     """Proposes ``flag`` evidence while the observation's ``flag`` tensor is set."""
-    if window.now.obs["flag"][0] > 0.5:
-        return Proposal("tools.flag", "flag", "push", {"value": float(window.now.obs["flag"][0])})
+    if window.now.obs["phi_collision_intensity"][0] > 0.5:
+        return Proposal("tools.flag", "flag", "push", {"value": float(window.now.obs["phi_collision_intensity"][0])})
     return None
 
 
@@ -81,9 +81,11 @@ def package(skill: dict, plans: dict | None = None, extra_tools: dict[str, str] 
 RULE = {"adjudication": [{"evidence": "flag", "mode": "push", "priority": 1}]}
 
 
-def obs(flag: float = 0.0, speed: float = 0.0) -> dict[str, np.ndarray]:
-    return {"flag": np.array([flag]), "phi_object_vel": np.array([speed, 0, 0, 0, 0, 0]),
-            "phi_contact_force": np.zeros(3)}
+def obs(flag: float = 0.0, x: float = 0.0) -> dict[str, np.ndarray]:
+    """A state whose ``flag`` (carried in phi_collision_intensity, a signal a harness may read) makes
+    the test critic propose, with the task object's box at ``x`` (seen through the perception tool)."""
+    return {"phi_collision_intensity": np.array([flag]), "phi_contact_force": np.zeros(3),
+            "task_object_bbox": np.array([x, 0.0, 0.9, x + 0.04, 0.04, 0.95])}
 
 
 ACT = np.zeros(7)
@@ -133,9 +135,12 @@ def test_milestone_conditions_and_priorities() -> None:
 
 
 def test_control_returns_only_when_evidence_cleared_and_stable_for_k_steps() -> None:
-    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.5, "k": 3}}))
+    # Stability over one frame, scaled so that perception jitter (about 0.2 m/s) stays stable and
+    # an object moving 10 cm a step (2 m/s) does not.
+    contract = {"gamma": 0.5, "k": 3, "stability": {"horizon": 1, "speed_scale": 1.0}}
+    rt = HarnessRuntime(package({**RULE, "reentry": contract}))
     rt.start("task", [])
-    states = [obs(1.0)] * 6 + [obs(0.0, speed=0.5)] * 4 + [obs(0.0)] * 5
+    states = [obs(1.0)] * 6 + [obs(0.0, x=0.1 * (i + 1)) for i in range(4)] + [obs(0.0, x=0.4)] * 5
     decisions = run(rt, states)
     modes = [d.mode for d in decisions]
     # takes control at step 0, pushes 3 steps, then holds: evidence still proposed (steps 4-5),
@@ -311,7 +316,7 @@ def test_the_example_package_builds() -> None:
 
     rt = HarnessRuntime(load_package(ROOT / "examples" / "harnesses" / "libero-goal-pick-place"))
     assert {"approach", "retention", "placement", "critics.empty_carry"} <= {c.name for c in rt.critics}
-    assert set(rt.plans) == {"acquire", "place", "carry"}
+    assert set(rt.plans) == {"acquire", "place", "redirect"}
 
 
 def test_reentry_clears_lists_evidence_that_blocks_every_handback() -> None:
@@ -320,14 +325,14 @@ from services.harness.runtime.api import Proposal
 
 
 def critic_other(window, params):
-    if window.now.obs.get("other", [0.0])[0] > 0.5:
+    if window.now.obs.get("phi_finger_contact", [0.0])[0] > 0.5:
         return Proposal("other.other", "unsafe", "", {})
     return None
 '''
     rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.0, "k": 1, "clears": ["unsafe"]}},
                                 extra_tools={"other": other}))
     rt.start("task", [])
-    unsafe = {**obs(0.0), "other": np.array([1.0])}
+    unsafe = {**obs(0.0), "phi_finger_contact": np.array([1.0])}
     modes = [d.mode for d in run(rt, [obs(1.0)] + [unsafe] * 6 + [obs(0.0)])]
     assert modes[:7] == ["push"] * 7 and modes[7] == "policy"
 
@@ -362,3 +367,84 @@ def make_bad(params):
         decisions = run(rt, [obs(1.0)] * 2)
         assert decisions[0].mode == "policy" and decisions[0].action is None
         assert why in rt.report.interventions[0].outcome
+
+
+# ---- what a harness may know, bounded recoveries, instruction redirection ------------------------------
+
+
+def test_frames_carry_only_readable_signals_and_objects_come_through_noisy_perception() -> None:
+    """The simulator's boxes never reach a critic; perception answers near them, but not exactly."""
+    seen: list = []
+    spy = '''
+def critic_spy(window, params):
+    seen = params["out"]
+    seen.append((sorted(window.now.obs), window.now.perceive("object")))
+    return None
+'''
+    pkg = package({}, extra_tools={"spy": spy})
+    pkg = LoadedPackage(**{**pkg.__dict__, "params": {"spy": {"out": seen}}})
+    rt = HarnessRuntime(pkg)
+    rt.start("put the bowl on the plate", [])
+    box = np.array([0.1, 0.2, 0.9, 0.14, 0.24, 0.95])
+    for _ in range(40):
+        rt.step({**obs(0.0), "task_object_bbox": box, "task_object_pos": box[:3], "object_state": np.zeros(14)}, ACT,
+                frozenset())
+    names, _ = seen[0]
+    assert "task_object_bbox" not in names and "task_object_pos" not in names and "object_state" not in names
+    hits = [d for _, d in seen if d is not None]
+    assert len(hits) >= 30  # dropouts are rare
+    errors = [float(np.linalg.norm(d.pos - (box[:3] + box[3:]) / 2)) for d in hits]
+    assert max(errors) < 0.05 and min(errors) > 0.0
+
+
+@pytest.mark.parametrize(
+    "source, match",
+    [
+        ('def critic_peek(window, params):\n    return window.now.obs.get("task_target_bbox")\n', "task_target_bbox"),
+        ('KEY = "object_state"\n\ndef critic_peek(window, params):\n    return None\n', "object_state"),
+    ],
+)
+def test_a_package_that_reads_privileged_state_is_refused(source: str, match: str) -> None:
+    with pytest.raises(HarnessError, match=match):
+        HarnessRuntime(LoadedPackage(**{**package({}).__dict__, "sources": {"peek": source}}))
+    with pytest.raises(HarnessError, match="phi_eef_object_dist"):
+        HarnessRuntime(package({"runtime": {"critic_budget_ms": 20.0, "critic_hard_limit_ms": 150.0,
+                                            "signals": ["phi_eef_object_dist"]}}))
+
+
+def test_a_playbook_over_the_intervention_cap_or_an_exact_sensor_is_refused() -> None:
+    from services.harness.runtime.limits import INTERVENTION_CAP
+
+    plans = {"p": {"push": {"recovery": "tools:make_push", "max_steps": INTERVENTION_CAP + 1}}}
+    with pytest.raises(HarnessError, match="intervention cap"):
+        HarnessRuntime(package(RULE, plans))
+    with pytest.raises(HarnessError, match="least noise"):
+        HarnessRuntime(package({"perception": {"dropout": 0.0}}))
+
+
+def test_in_control_at_success_is_recorded_as_no_hand_back() -> None:
+    rt = HarnessRuntime(package(RULE))
+    rt.start("task", [])
+    run(rt, [obs(1.0)] * 2)
+    assert rt.finish(success=True).interventions[0].outcome == "in_control_at_success"
+
+
+def test_instruction_redirection_lets_the_policy_act_under_the_subgoal_until_it_is_reached() -> None:
+    from services.harness.runtime.library.recoveries import subgoal_instruction
+
+    assert subgoal_instruction("grasped(cream_cheese_1)") == "pick up the cream cheese"
+    assert subgoal_instruction("in(bowl_1,wooden_cabinet_1_top_region)#2") == "put the bowl in the wooden cabinet top"
+    assert subgoal_instruction("open(wooden_cabinet_1_top_region)") == "open the wooden cabinet top"
+    assert subgoal_instruction("turnon(flat_stove_1)") == "turn on the flat stove"
+    assert subgoal_instruction("reached(cabinet_1.handle)") == ""
+    plans = {"p": {"push": {"recovery": "redirect_instruction", "params": {"steps": 5}}}}
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.0, "k": 1}}, plans))
+    names = ["reached(bowl_1)", "grasped(bowl_1)", "on(bowl_1,plate_1)"]
+    rt.start("put the bowl on the plate", names)
+    first = rt.step(obs(1.0), None, frozenset())
+    assert first.mode == "push" and first.action is None and first.instruction == "pick up the bowl"
+    later = rt.step(obs(0.0), ACT, frozenset({"reached(bowl_1)"}))
+    assert later.instruction == "pick up the bowl"
+    done = rt.step(obs(0.0), ACT, frozenset({"reached(bowl_1)", "grasped(bowl_1)"}))
+    assert done.mode == "policy" and done.instruction == "" and rt.report.interventions[0].outcome == "reentered"
+    assert rt.report.recovery_actions == 2

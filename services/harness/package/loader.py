@@ -159,6 +159,7 @@ def load_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYTE
         plans=MappingProxyType(checked.plans),
         tools=MappingProxyType(tools),
         manifest=MappingProxyType(manifest),
+        sources=MappingProxyType(dict(checked.sources)),
     )
 
 

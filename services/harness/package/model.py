@@ -17,7 +17,8 @@ class LoadedPackage:
     """One immutable harness version: ``skill`` is SKILL.md's TOML front matter (``skill_text``
     the markdown after it), ``params`` the merged params/*.toml (file stem -> table), ``plans``
     the merged plans/*.toml (file stem -> table), ``tools`` the imported tools/*.py modules by
-    stem, ``manifest`` manifest.json (empty, and ``version`` "", for a directory never published)."""
+    stem, ``manifest`` manifest.json (empty, and ``version`` "", for a directory never published),
+    ``sources`` the tools' text by stem (what the runtime checks the signals a package reads on)."""
 
     name: str
     version: str
@@ -28,3 +29,4 @@ class LoadedPackage:
     plans: Mapping[str, Mapping[str, Any]]
     tools: Mapping[str, ModuleType]
     manifest: Mapping[str, Any] = field(default_factory=dict)
+    sources: Mapping[str, str] = field(default_factory=dict)

@@ -13,16 +13,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.harness.runtime.perception import Detection, Sensor, no_sensor
+
+__all__ = ["Detection", "Frame", "Proposal", "Window"]
+
 
 @dataclass(frozen=True)
 class Frame:
-    """One env step as critics see it: s_t (named observation tensors, privileged ones included),
-    a_t (the action that led here, None at reset), mu_t (milestones reached so far) and the step."""
+    """One env step as critics see it: s_t (the observation tensors a harness may read:
+    services/harness/runtime/signals.py), a_t (the action that led here, None at reset), mu_t
+    (milestones reached so far), the step, and ``perceive``, the perception tool for this state
+    (``perceive("object")`` -> a noisy :class:`Detection` or None; services/harness/runtime/perception.py)."""
 
     step: int
     obs: Mapping[str, np.ndarray]
     action: np.ndarray | None
     milestones: frozenset[str]
+    perceive: Sensor = no_sensor
 
 
 @dataclass(frozen=True)

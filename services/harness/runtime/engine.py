@@ -36,12 +36,18 @@ from services.harness.package.model import LoadedPackage
 from services.harness.runtime.api import Frame, Proposal, Window
 from services.harness.runtime.budget import CallBudget, guarded_call
 from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
-from services.harness.runtime.library.recoveries import DONE, FAILED, Chain
+from services.harness.runtime import signals
+from services.harness.runtime.library.recoveries import DONE, FAILED, Chain, PolicyUnder
 from services.harness.runtime.library.schema import ParamError
+from services.harness.runtime.limits import INTERVENTION_CAP
 from services.harness.runtime.orchestrator import POLICY, Orchestrator, Rule
+from services.harness.runtime.perception import Perception, episode_seed, noise_from_table
 from services.harness.runtime.reentry import ReentryContract
 
 _HOLD = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+#: The outcome of an intervention still in control when the episode succeeded: the recovery, not
+#: the policy, finished the task, and it never handed back (the report counts it as such).
+IN_CONTROL_AT_SUCCESS = "in_control_at_success"
 
 
 class HarnessError(ValueError):
@@ -123,12 +129,15 @@ class EpisodeReport:
 @dataclass(frozen=True)
 class Decision:
     """Who acts next: ``mode`` ("policy" or a playbook), the recovery's ``action`` when a recovery
-    has control, this step's proposals and the active intervention's id ("" under the policy)."""
+    has control, this step's proposals and the active intervention's id ("" under the policy).
+    ``instruction`` is set when a recovery redirects the policy: the policy acts (``action`` None)
+    under that instruction instead of the episode's."""
 
     mode: str
     proposals: tuple[Proposal, ...]
     action: np.ndarray | None
     intervention_id: str
+    instruction: str = ""
 
 
 def _library_critic(entry: Mapping[str, Any]) -> tuple[str, Callable[[Window], Any], float | None]:
@@ -215,9 +224,12 @@ def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage) -> Plan:
         except ParamError as exc:
             raise HarnessError(str(exc)) from None
         clear = lambda w: spec.fn(w, cparams) is not None  # noqa: E731
-    max_steps, max_uses = int(table.get("max_steps", 300)), int(table.get("max_uses", 3))
+    max_steps, max_uses = int(table.get("max_steps", INTERVENTION_CAP)), int(table.get("max_uses", 3))
     if max_steps < 1 or max_uses < 1:
         raise HarnessError(f"playbook {mode}: max_steps and max_uses must be >= 1")
+    if max_steps > INTERVENTION_CAP:
+        raise HarnessError(f"playbook {mode}: max_steps {max_steps} is over the intervention cap of {INTERVENTION_CAP} "
+                           "actions (a recovery corrects the policy, it does not run the task; docs/harness.md)")
     return Plan(mode, build, max_steps, max_uses, clear)
 
 
@@ -237,6 +249,16 @@ class HarnessRuntime:
         if self.window_size < 1 or self.budget_s <= 0 or self.hard_limit_s < self.budget_s or self.cooldown < 0:
             raise HarnessError("[runtime]: window >= 1, cooldown >= 0 and 0 < critic_budget_ms <= critic_hard_limit_ms "
                                "are required")
+        declared = runtime.get("signals", [])
+        if not isinstance(declared, list) or not all(isinstance(n, str) for n in declared):
+            raise HarnessError("[runtime] signals must be a list of observation names")
+        problems = signals.check_package({f"tools/{k}.py": v for k, v in package.sources.items()}, declared)
+        if problems:
+            raise HarnessError("reads what a harness may not know: " + "; ".join(problems))
+        try:
+            self.noise = noise_from_table(skill.get("perception", {}))
+        except (TypeError, ValueError) as exc:
+            raise HarnessError(str(exc)) from None
         try:
             self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
         except (ValueError, ParamError) as exc:
@@ -288,6 +310,7 @@ class HarnessRuntime:
         self._mode = POLICY
         self._step = 0
         self._quiet_until = -1
+        self._perception: Perception | None = None
         self.report = EpisodeReport(self.package.name, self.package.version, self.package.content_hash)
 
     @property
@@ -311,14 +334,13 @@ class HarnessRuntime:
                 if self._active is not None:
                     self._active.actions += 1
             self.report.actions_by_mode[self._mode] += 1
-        self._frames.append(Frame(self._step, obs, action, milestones))
+        if self._perception is None:
+            self._perception = Perception(episode_seed(obs, self.instruction), self.noise)
+        self._frames.append(Frame(self._step, signals.visible(obs), action, milestones, self._perception.sensor(obs)))
         window = Window(tuple(self._frames), self.instruction, self.milestone_names)
         proposals = self._run_critics(window)
         if self._active is not None:
-            next_action = self._continue(window, proposals)
-            if next_action is not None:
-                return Decision(self._mode, proposals, next_action, self._active.id)
-            return Decision(POLICY, proposals, None, "")
+            return self._decision(self._continue(window, proposals), proposals)
         if self._step <= self._quiet_until:
             return Decision(POLICY, proposals, None, "")
         verdict = self.orchestrator.adjudicate(
@@ -328,18 +350,22 @@ class HarnessRuntime:
         self.report.rejected += len(verdict.rejected)
         if verdict.accepted is None or verdict.rule is None:
             return Decision(POLICY, proposals, None, "")
-        next_action = self._begin(window, verdict.accepted, verdict.rule, proposals)
-        if next_action is None:
-            return Decision(POLICY, proposals, None, "")
-        return Decision(self._mode, proposals, next_action, self._active.id)
+        return self._decision(self._begin(window, verdict.accepted, verdict.rule, proposals), proposals)
 
     def finish(self, success: bool) -> EpisodeReport:
         """End the episode: an intervention still in control ends with it."""
         if self._active is not None:
-            self._end("episode_end_success" if success else "episode_end")
+            self._end(IN_CONTROL_AT_SUCCESS if success else "episode_end")
         return self.report
 
     # ---- internals ---------------------------------------------------------------------------
+
+    def _decision(self, next_action: np.ndarray | PolicyUnder | None, proposals: tuple[Proposal, ...]) -> Decision:
+        if next_action is None or self._active is None:
+            return Decision(POLICY, proposals, None, "")
+        if isinstance(next_action, PolicyUnder):
+            return Decision(self._mode, proposals, None, self._active.id, next_action.instruction)
+        return Decision(self._mode, proposals, next_action, self._active.id)
 
     def _run_critics(self, window: Window) -> tuple[Proposal, ...]:
         out = []
@@ -358,7 +384,8 @@ class HarnessRuntime:
         self.report.proposals += len(out)
         return tuple(out)
 
-    def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]) -> np.ndarray | None:
+    def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]
+               ) -> np.ndarray | PolicyUnder | None:
         plan = self.plans[rule.mode]
         self._uses[rule.mode] += 1
         iv = Intervention(
@@ -382,8 +409,9 @@ class HarnessRuntime:
             return None
         return self._continue(window, proposals)
 
-    def _continue(self, window: Window, proposals: Sequence[Proposal]) -> np.ndarray | None:
-        """The active recovery's next action, or None when control goes back to the policy."""
+    def _continue(self, window: Window, proposals: Sequence[Proposal]) -> np.ndarray | PolicyUnder | None:
+        """The active recovery's next action (or a redirection of the policy), or None when control
+        goes back to the policy."""
         iv, plan, recovery = self._active, self._plan, self._recovery
         assert iv is not None and plan is not None and recovery is not None
         if iv.actions >= plan.max_steps:
@@ -392,6 +420,8 @@ class HarnessRuntime:
         if not self._waiting:
             try:
                 action = recovery.act(window)
+                if isinstance(action, PolicyUnder):
+                    return action
                 if action is not None:
                     action = np.asarray(action, dtype=np.float64)
                     if self.action_shape is not None and action.shape != self.action_shape:

@@ -43,10 +43,22 @@ def _scripted() -> PolicyModel:
     return ScriptedPickPlacePolicy()
 
 
+def _scripted_weak() -> PolicyModel:
+    from services.policy_worker.models.scripted import PickPlaceParams, ScriptedPickPlacePolicy
+
+    return ScriptedPickPlacePolicy(PickPlaceParams(close_height=0.04), name="scripted-pick-place-weak")
+
+
 def _oracle() -> PolicyModel:
     from services.policy_worker.models.oracle import OraclePolicy
 
     return OraclePolicy()
+
+
+def _do_nothing() -> PolicyModel:
+    from services.policy_worker.models.do_nothing import DoNothingPolicy
+
+    return DoNothingPolicy()
 
 
 def _privileged_state_baseline() -> PolicyModel:
@@ -63,8 +75,13 @@ def _zetta_vla_image() -> PolicyModel:
 
 FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
+    # The same, weakened: it closes its gripper 4 cm above the grasp point (a known failure a bounded
+    # regrasp fixes; the evolver's end-to-end test evolves a harness for it).
+    "scripted-pick-place-weak": _scripted_weak,
     # One generic skill per BDDL goal predicate on privileged state (models/oracle.py; docs/oracle.md).
     "oracle": _oracle,
+    # Zero actions: the control every evolution result is measured against (models/do_nothing.py).
+    "do-nothing": _do_nothing,
     # The Zetta VLA (services/policy_worker/vla): camera image + proprioception + instruction.
     "zetta-vla-image": _zetta_vla_image,
     # Its state-based sibling, which reads the simulator's object poses: a baseline, never a default.

@@ -69,16 +69,20 @@ class PickPlaceParams:
     #: Largest translational action while holding something (a rim grasp slips under fast moves).
     carry_max_action: float = 0.5
     settle_distance: float = 0.005
+    #: Height (m) above the grasp point at which the fingers close. 0 closes at the grasp point; the
+    #: weakened variant ("scripted-pick-place-weak") closes 4 cm early, on nothing, and retries the
+    #: same way forever: a known failure a bounded regrasp fixes, which the evolver's tests use.
+    close_height: float = 0.0
 
 
 class ScriptedPickPlacePolicy:
     """Batched, stateless pick-and-place controller emitting OSC_POSE delta actions."""
 
-    name = "scripted-pick-place"
-
-    def __init__(self, params: PickPlaceParams | None = None, chunk_size: int = 1) -> None:
+    def __init__(self, params: PickPlaceParams | None = None, chunk_size: int = 1, name: str = "scripted-pick-place"
+                 ) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        self.name = name
         self.params = params or PickPlaceParams()
         self.chunk_size = chunk_size
 
@@ -126,7 +130,7 @@ class ScriptedPickPlacePolicy:
         grasp = self._grasp_point(obj)
         gap = float(fingers[0] - fingers[1])
         aligned = np.linalg.norm(eef[:2] - grasp[:2]) < p.xy_tolerance * 1.5
-        if aligned and eef[2] - grasp[2] < p.z_tolerance:
+        if aligned and eef[2] - grasp[2] < p.z_tolerance + p.close_height:
             if gap < p.closed_gap:
                 return self._move(eef, eef + [0.0, 0.0, _BACK_OFF], _OPEN)  # closed on nothing
             return self._move(eef, grasp, _CLOSE)

@@ -18,7 +18,7 @@ def critic_empty_carry(window: Window, params: dict) -> Proposal | None:
     now = window.now
     if tools.grasped(now) or tools.scalar(now, "phi_gripper_aperture") > params["closed_gap"]:
         return None
-    box = tools.vec(now, "task_object_bbox")
+    box = tools.object_box(now)  # the perception tool's estimate
     if not tools.has_box(box):
         return None
     eef = tools.vec(now, "robot0_eef_pos")

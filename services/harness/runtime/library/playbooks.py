@@ -1,9 +1,10 @@
 """Typed playbooks: multi-step recoveries composed from the library's recovery templates.
 
 A single recovery template does one thing (regrasp, align, lower and release); what rescues a
-failing episode is often a sequence that carries the task from the stage where the policy failed to
-the stage where it can take over again, or to the end: acquire the object, then bring it over the
-receptacle, lower, release and retreat. A :class:`PlaybookSpec` names such a sequence with its
+failing episode is often a short sequence that brings the task from the stage where the policy
+failed to one where it can take over again: acquire the object, or place a held one (align over the
+receptacle, lower, release, retreat). No playbook runs the task end to end: each stays within the
+runtime's intervention cap (engine.INTERVENTION_CAP) and hands control back. A :class:`PlaybookSpec` names such a sequence with its
 budgets (``max_steps``, ``max_uses``), its clearing condition and the kinds of first missing
 milestone (``stages``) it is meant for. Nothing here names a task or an object: the steps act on
 the live bindings, and the stages are milestone kinds, so a playbook transfers by rebinding.
@@ -45,7 +46,7 @@ class PlaybookSpec:
     stages: tuple[str, ...]
     #: Per-step parameter overrides (step name -> {param: value}); the rest are the steps' defaults.
     args: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
-    max_steps: int = 250
+    max_steps: int = 80
     max_uses: int = 3
     #: Library predicate that must hold before the policy gets control back ("" = none).
     clear_when: str = ""
@@ -64,24 +65,18 @@ PLAYBOOKS: dict[str, PlaybookSpec] = {
     p.name: p
     for p in (
         PlaybookSpec(
-            "acquire", ("regrasp",), PICK_PLACE_STAGES, max_steps=250, max_uses=1, clear_when="grasp_retained",
+            "acquire", ("regrasp",), PICK_PLACE_STAGES, max_steps=80, max_uses=1, clear_when="grasp_retained",
             doc="bounded regrasp with a memory of failed grasps and a lift check; the policy resumes holding "
                 "the object (once per episode: a policy that loses it again needs more than a regrasp)"),
         PlaybookSpec(
             "place", ("fine_alignment", "lower_until_supported_then_release", "retreat_until_separated"),
-            ("lifted",) + PLACE_STAGES, max_steps=220, max_uses=3, holding=True,
+            ("lifted",) + PLACE_STAGES, max_steps=80, max_uses=2, holding=True,
             doc="bring the held object over the live receptacle (rising first), lower it until supported, "
                 "release, retreat"),
         PlaybookSpec(
-            "carry", ("regrasp", "fine_alignment", "lower_until_supported_then_release", "retreat_until_separated"),
-            PICK_PLACE_STAGES, max_steps=300, max_uses=2,
-            doc="acquire the object and place it in one intervention, for a policy that cannot be trusted "
-                "to carry what it is handed"),
-        PlaybookSpec(
-            "operate", ("operate_handle",), ARTICULATION_STAGES, max_steps=320, max_uses=2,
-            doc="carry an articulation stage to its goal: face, grip and pull or push a drawer's bar along its "
-                "axis (hooked from above when too low to grip), or push a knob's lever along its tangent; then "
-                "open the hand and back off (the oracle's handle motions, services/common/handles.py)"),
+            "redirect", ("redirect_instruction",), PICK_PLACE_STAGES + ARTICULATION_STAGES, max_steps=60, max_uses=2,
+            doc="instruction redirection: the frozen policy acts under the instruction of the next sub-goal "
+                "(pick up the object, open the drawer) until that milestone holds; the policy does the work"),
     )
 }
 
@@ -89,7 +84,11 @@ PLAYBOOKS: dict[str, PlaybookSpec] = {
 def check_playbooks() -> None:
     """Every playbook names library recoveries and a library predicate with in-range overrides
     (raises ValueError otherwise); run by the tests, so a broken entry never reaches a search."""
+    from services.harness.runtime.limits import INTERVENTION_CAP
+
     for p in PLAYBOOKS.values():
+        if p.max_steps > INTERVENTION_CAP:
+            raise ValueError(f"playbook {p.name}: max_steps {p.max_steps} over the intervention cap {INTERVENTION_CAP}")
         unknown = [s for s in p.steps if s not in RECOVERIES]
         if unknown or not p.steps:
             raise ValueError(f"playbook {p.name}: unknown recovery step(s) {unknown}")

@@ -1,8 +1,9 @@
 """Generic object-relative predicates over a trajectory window.
 
-Each predicate reads the live bindings of the current goal stage (the task object's and the
-target's boxes, the grip site, the physical signals ``phi_*``) and returns the evidence details
-(numbers that justify it) when it holds, ``None`` otherwise. None names a task or holds a task
+Each predicate reads what a harness may know of the current goal stage (the perception tool's
+noisy boxes of the object and the target, the grip site, the physical signals ``phi_*``,
+milestones) and returns the evidence details (numbers that justify it) when it holds, ``None``
+otherwise. None names a task or holds a task
 constant, so a critic built from them transfers by rebinding. Their parameters and ranges are in
 :data:`PREDICATES` (what the evolver searches).
 """
@@ -48,7 +49,7 @@ def grasp_lost(w: Window, p: Mapping[str, float]) -> Details:
     if held < min_held or t.gripper_command(w.now.action) <= 0.0:
         return None
     return {"held_steps": float(held), "steps_since": float(confirm),
-            "eef_object_dist": t.scalar(w.now, "phi_eef_object_dist")}
+            "eef_object_dist": t.eef_object_dist(w.now) or 0.0}
 
 
 def failed_acquisition(w: Window, p: Mapping[str, float]) -> Details:
@@ -56,10 +57,8 @@ def failed_acquisition(w: Window, p: Mapping[str, float]) -> Details:
     grip site within ``near`` of the object's box."""
     now = w.now
     aperture = t.scalar(now, "phi_gripper_aperture")
-    dist = t.scalar(now, "phi_eef_object_dist")
-    if t.grasped(now) or aperture > p["closed_gap"] or dist > p["near"]:
-        return None
-    if not t.has_box(t.vec(now, "task_object_bbox")):
+    dist = t.eef_object_dist(now)
+    if t.grasped(now) or aperture > p["closed_gap"] or dist is None or dist > p["near"]:
         return None
     return {"aperture": aperture, "eef_object_dist": dist}
 
@@ -89,10 +88,10 @@ def non_approach(w: Window, p: Mapping[str, float]) -> Details:
     if len(w.frames) < n:
         return None
     now, first = w.now, w.frames[-n]
-    if t.grasped(now) or not t.has_box(t.vec(now, "task_object_bbox")):
+    if t.grasped(now):
         return None
-    dist, before = t.scalar(now, "phi_eef_object_dist"), t.scalar(first, "phi_eef_object_dist")
-    if dist <= p["near"] or before - dist >= p["min_gain"]:
+    dist, before = t.eef_object_dist(now), t.eef_object_dist(first)
+    if dist is None or before is None or dist <= p["near"] or before - dist >= p["min_gain"]:
         return None
     return {"eef_object_dist": dist, "gain": before - dist, "steps": float(n)}
 
@@ -100,25 +99,25 @@ def non_approach(w: Window, p: Mapping[str, float]) -> Details:
 def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
     """An articulation stage (open/close a drawer, turn a knob) is not progressing: over the last
     ``horizon`` frames, all in that stage, no new milestone was reached, the hand came less than
-    ``min_approach`` closer to the handle and the handle less than ``min_progress`` closer to its
-    goal position. Covers a policy that never heads for the handle and one that touches it without
-    moving it; silent on every other stage, so it clears once the env moves on."""
+    ``min_approach`` closer to the (perceived) handle and the handle moved less than
+    ``min_progress``. Covers a policy that never heads for the handle and one that touches it
+    without moving it; silent on every other stage, so it clears once the env moves on."""
     n = int(p["horizon"])
     if len(w.frames) < n:
         return None
     first, now = w.frames[-n], w.now
     if not (t.articulation_stage(now) and t.articulation_stage(first)) or t.stage_kind(first) != t.stage_kind(now):
         return None
-    if not np.allclose(t.vec(first, "task_target_pos"), t.vec(now, "task_target_pos"), atol=0.02):
-        return None  # another handle's stage (e.g. a second drawer)
     if now.milestones - first.milestones:
         return None
-    approach = t.scalar(first, "phi_eef_object_dist") - t.scalar(now, "phi_eef_object_dist")
-    progress = t.handle_remaining(first) - t.handle_remaining(now)
-    if approach >= p["min_approach"] or progress >= p["min_progress"]:
+    d0, d1 = t.eef_object_dist(first), t.eef_object_dist(now)
+    h0, h1 = t.object_pos(first), t.object_pos(now)
+    if d0 is None or d1 is None or h0 is None or h1 is None:
         return None
-    return {"approach": approach, "progress": progress, "remaining": t.handle_remaining(now),
-            "eef_handle_dist": t.scalar(now, "phi_eef_object_dist"), "steps": float(n)}
+    approach, moved = d0 - d1, float(np.linalg.norm(h1 - h0))
+    if approach >= p["min_approach"] or moved >= p["min_progress"]:
+        return None
+    return {"approach": approach, "handle_motion": moved, "eef_handle_dist": d1, "steps": float(n)}
 
 
 def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
@@ -130,14 +129,15 @@ def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
     now, first = w.now, w.frames[-n]
     if t.grasped(now):
         return None
-    obj = t.vec(now, "task_object_pos")
-    if not np.any(obj):
+    obj, obj0 = t.object_pos(now), t.object_pos(first)
+    if obj is None or obj0 is None:
         return None
     eef, eef0 = t.vec(now, "robot0_eef_pos"), t.vec(first, "robot0_eef_pos")
     task_dist = float(np.linalg.norm(obj - eef))
-    if float(np.linalg.norm(t.vec(first, "task_object_pos") - eef0)) - task_dist >= p["min_gain"]:
+    if float(np.linalg.norm(obj0 - eef0)) - task_dist >= p["min_gain"]:
         return None  # closing in on the task object itself
-    others = t.other_object_positions(now, obj)
+    others = t.other_object_positions(now)
+    others = others[np.linalg.norm(others - obj, axis=1) > p["separation"]] if len(others) else others
     if not len(others):
         return None
     d_now = np.linalg.norm(others - eef, axis=1)
@@ -163,7 +163,7 @@ def held_near_target(w: Window, p: Mapping[str, float]) -> Details:
     now = w.now
     if not t.grasped(now):
         return None
-    obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+    obj, target = t.object_box(now), t.target_box(now)
     if not (t.has_box(obj) and t.has_box(target)):
         return None
     horizontal = float(np.linalg.norm(t.box_center(obj)[:2] - t.box_center(target)[:2]))
@@ -182,9 +182,9 @@ def held_stalled_transport(w: Window, p: Mapping[str, float]) -> Details:
     now, first = w.now, w.frames[-n]
     if not all(t.grasped(f) for f in (now, first)):
         return None
-    obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
-    obj0 = t.vec(first, "task_object_bbox")
-    if not (t.has_box(obj) and t.has_box(target)):
+    obj, target = t.object_box(now), t.target_box(now)
+    obj0 = t.object_box(first)
+    if not (t.has_box(obj) and t.has_box(target) and t.has_box(obj0)):
         return None
     tc = t.box_center(target)[:2]
     d_now = float(np.linalg.norm(t.box_center(obj)[:2] - tc))
@@ -199,7 +199,7 @@ def supported_placement(w: Window, p: Mapping[str, float]) -> Details:
     ``inset``), its bottom within ``gap`` above the target's top or down inside it, and it has
     come to rest (speed under ``max_speed``)."""
     now = w.now
-    obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+    obj, target = t.object_box(now), t.target_box(now)
     if not (t.has_box(obj) and t.has_box(target)):
         return None
     height = float(obj[2] - target[5])
@@ -209,7 +209,7 @@ def supported_placement(w: Window, p: Mapping[str, float]) -> Details:
     inset = p["inset"]
     if not (target[0] + inset <= cx <= target[3] - inset and target[1] + inset <= cy <= target[4] - inset):
         return None
-    speed = float(np.linalg.norm(t.vec(now, "phi_object_vel")[:3]))
+    speed = t.object_speed(w.frames, int(p["speed_frames"]))
     if speed > p["max_speed"]:
         return None
     return {"height": height, "speed": speed}
@@ -234,20 +234,22 @@ def blocked_motion(w: Window, p: Mapping[str, float]) -> Details:
 
 def contact_stability(w: Window, p: Mapping[str, float]) -> float:
     """Stability(s_t) in (0, 1] of the re-entry contract: 1 at rest, falling with the object's
-    speed (``speed_scale`` m/s), its spin (``spin_scale`` rad/s) and the oscillation of the grip
-    force over the last ``horizon`` frames (``force_scale`` N)."""
+    speed as perceived over the last ``horizon`` frames (``speed_scale`` m/s), the hand's speed
+    (``hand_scale`` m/s) and the oscillation of the grip force over those frames (``force_scale`` N)."""
     n = max(1, int(p["horizon"]))
     frames = w.frames[-n:]
-    vel = t.vec(w.now, "phi_object_vel")
-    speed = float(np.linalg.norm(vel[:3])) if len(vel) >= 6 else 0.0
-    spin = float(np.linalg.norm(vel[3:6])) if len(vel) >= 6 else 0.0
+    speed = t.object_speed(w.frames, n)
+    hand = 0.0
+    if len(w.frames) > 1:
+        k = min(n, len(w.frames) - 1)
+        hand = float(np.linalg.norm(t.vec(w.now, "robot0_eef_pos") - t.vec(w.frames[-k - 1], "robot0_eef_pos"))) / (k * t.STEP_S)
     forces = [t.vec(f, "phi_contact_force") for f in frames]
     forces = [f for f in forces if len(f) == 3]
     oscillation = 0.0
     if len(forces) > 1:
         stack = np.stack(forces)
         oscillation = float(np.linalg.norm(stack.std(axis=0)))
-    return math.exp(-(speed / p["speed_scale"] + spin / p["spin_scale"] + oscillation / p["force_scale"]))
+    return math.exp(-(speed / p["speed_scale"] + hand / p["hand_scale"] + oscillation / p["force_scale"]))
 
 
 def _f(default: float, low: float, high: float, doc: str) -> Param:
@@ -287,11 +289,12 @@ PREDICATES: dict[str, PredicateSpec] = {
             "horizon": _i(15, 2, 200, "frames looked back"),
             "near": _f(0.08, 0.01, 0.3, "distance (m) to the other object that counts as approaching it"),
             "min_gain": _f(0.03, 0.0, 0.3, "how much closer (m) to the other object"),
+            "separation": _f(0.03, 0.0, 0.2, "detections nearer than this (m) to the task object are the task object"),
         }, approach_wrong_object.__doc__ or "", holding=False),
         PredicateSpec("articulation_stalled", articulation_stalled, {
             "horizon": _i(40, 5, 200, "frames looked back"),
             "min_approach": _f(0.02, 0.0, 0.2, "how much closer (m) to the handle the hand must have come"),
-            "min_progress": _f(0.01, 0.0, 0.1, "how much closer (m) to its goal the handle must have come"),
+            "min_progress": _f(0.015, 0.0, 0.1, "how far (m) the handle must have moved (above perception jitter)"),
         }, articulation_stalled.__doc__ or ""),
         PredicateSpec("drift", drift, {
             "max_drift": _f(0.03, 0.002, 0.2, "slip in the hand (m) that counts as drift"),
@@ -309,6 +312,7 @@ PREDICATES: dict[str, PredicateSpec] = {
             "inset": _f(0.0, -0.05, 0.1, "margin (m) inside the target box for the object centre"),
             "gap": _f(0.02, 0.0, 0.1, "largest height (m) of the object bottom over the target top"),
             "max_speed": _f(0.05, 0.0, 1.0, "largest object speed (m/s) at rest"),
+            "speed_frames": _i(10, 1, 20, "frames the perceived speed is measured over (averages out perception jitter)"),
         }, supported_placement.__doc__ or ""),
         PredicateSpec("blocked_motion", blocked_motion, {
             "horizon": _i(10, 2, 100, "frames looked back"),
@@ -320,8 +324,8 @@ PREDICATES: dict[str, PredicateSpec] = {
 
 #: Parameters of :func:`contact_stability` (the re-entry contract's Stability(s_t)).
 STABILITY_PARAMS: dict[str, Param] = {
-    "horizon": _i(5, 1, 50, "frames of grip-force history"),
-    "speed_scale": _f(0.05, 0.001, 1.0, "object speed (m/s) that divides stability by e"),
-    "spin_scale": _f(1.0, 0.01, 10.0, "object spin (rad/s) that divides stability by e"),
+    "horizon": _i(10, 1, 50, "frames of speed and grip-force history (long enough to average out perception jitter)"),
+    "speed_scale": _f(0.1, 0.001, 2.0, "perceived object speed (m/s) that divides stability by e"),
+    "hand_scale": _f(0.1, 0.001, 1.0, "hand speed (m/s) that divides stability by e"),
     "force_scale": _f(5.0, 0.1, 100.0, "grip-force oscillation (N) that divides stability by e"),
 }

@@ -4,21 +4,20 @@ A recovery is built fresh for each intervention from its parameters, started on 
 triggered it, and asked for one action per env step until it returns ``None`` (finished; then
 ``status`` says ``done`` or ``failed``). The runtime, not the recovery, decides when control goes
 back to the policy (the re-entry contract, services/harness/runtime/reentry.py). All motion targets
-are recomputed every step from the live object and target boxes, so a recovery follows an object
-that moves and never replays a recorded trajectory.
+are recomputed every step from the perception tool's estimates of the object and target boxes, so a
+recovery follows an object that moves and never replays a recorded trajectory. Nothing here runs
+the task end to end, and nothing is shared with the scripted oracle (services/policy_worker/models):
+a recovery stages, regrasps, places or retreats, then the policy goes on.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.common import handles
 from services.harness.runtime.api import Window
-from services.harness.runtime.orchestrator import first_missing, milestone_kind
 from services.common.rotations import hand_down
 from services.harness.runtime.library import tools as t
 from services.harness.runtime.library.schema import Param, RecoverySpec
@@ -88,7 +87,7 @@ class ReleaseAndRestage(Recovery):
     def act(self, w: Window) -> np.ndarray | None:
         now = w.now
         eef = t.vec(now, "robot0_eef_pos")
-        obj = t.vec(now, "task_object_bbox")
+        obj = t.object_box(now)
         goal_z = (obj[5] if t.has_box(obj) else eef[2]) + self.p["rise"]
         opened = t.scalar(now, "phi_gripper_aperture") >= self.p["open_gap"]
         if opened and eef[2] >= goal_z - self.p["tolerance"]:
@@ -106,15 +105,19 @@ class Pregrasp(Recovery):
 
     def start(self, w: Window, memory: EpisodeMemory) -> None:
         super().start(w, memory)
-        box = t.vec(w.now, "task_object_bbox")
+        box = t.object_box(w.now)
         self.proposal = t.fresh_grasp(box, memory.failed_grasps, self.p["equivalence"], self.p) if t.has_box(box) else None
 
     def act(self, w: Window) -> np.ndarray | None:
+        now = w.now
+        eef, box = t.vec(now, "robot0_eef_pos"), t.object_box(now)
+        if not t.has_box(box):
+            return _hold(t.OPEN)  # the detector missed the object on this frame: wait for the next
+        if self.proposal is None:
+            self.proposal = t.fresh_grasp(box, self.memory.failed_grasps, self.p["equivalence"], self.p)
         if self.proposal is None:
             self._finish(FAILED, "no grasp proposal left that has not failed")
             return None
-        now = w.now
-        eef, box = t.vec(now, "robot0_eef_pos"), t.vec(now, "task_object_bbox")
         goal = self.proposal.point(box) + [0.0, 0.0, self.p["hover"]]
         hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
         desired = hand_down(np.eye(3)[self.proposal.finger_axis][:2], hand)
@@ -122,7 +125,7 @@ class Pregrasp(Recovery):
         if np.linalg.norm(goal - eef) < self.p["tolerance"] and turned < self.p["angle_tolerance"]:
             self._finish(DONE)
             return None
-        obstacles = [t.vec(now, "task_target_bbox"), box]
+        obstacles = [t.target_box(now), box]
         waypoint = t.clear_waypoint(eef, goal, obstacles, self.p["margin"], self.p["clearance"])
         action = t.move_action(eef, waypoint, t.OPEN, max_action=self.p["max_action"])
         action[3:6] = t.orient_action(t.vec(now, "robot0_eef_quat"), desired)
@@ -197,7 +200,9 @@ class Regrasp(Recovery):
             self.phase = "descend"
         proposal = self._pregrasp.proposal
         assert proposal is not None
-        box = t.vec(now, "task_object_bbox")
+        box = t.object_box(now)
+        if self.phase == "descend" and not t.has_box(box):
+            return _hold(t.OPEN)
         hand = t.quat_to_mat(t.vec(now, "robot0_eef_quat"))
         rot = t.orient_action(t.vec(now, "robot0_eef_quat"), hand_down(np.eye(3)[proposal.finger_axis][:2], hand))
         if self.phase == "descend":
@@ -248,10 +253,9 @@ class FineAlignment(Recovery):
         if not any(t.grasped(f) for f in w.frames[-int(self.p["lost_steps"]):]):
             self._finish(FAILED, "the object is not held")
             return None
-        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
-        if not t.has_box(target):
-            self._finish(FAILED, "the stage has no target")
-            return None
+        obj, target = t.object_box(now), t.target_box(now)
+        if not (t.has_box(obj) and t.has_box(target)):
+            return _hold(t.CLOSE)  # not detected on this frame (the step budget bounds the wait)
         center = t.box_center(obj)
         held = np.array([center[0], center[1], obj[2]])
         tc = t.box_center(target)
@@ -288,22 +292,23 @@ class LowerUntilSupportedThenRelease(Recovery):
 
     def _supported(self, w: Window) -> bool:
         now = w.now
-        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+        obj, target = t.object_box(now), t.target_box(now)
+        if not (t.has_box(obj) and t.has_box(target)):
+            return False
         if obj[2] <= target[2] + self.p["gap"]:
             return True
         n = int(self.p["stall_steps"])
         if len(w.frames) < n:
             return False
-        z0 = t.vec(w.frames[-n], "task_object_bbox")[2]
-        return abs(obj[2] - z0) < self.p["stall_motion"]
+        before = t.object_box(w.frames[-n])
+        return t.has_box(before) and abs(obj[2] - before[2]) < self.p["stall_motion"]
 
     def act(self, w: Window) -> np.ndarray | None:
         now = w.now
-        obj, target = t.vec(now, "task_object_bbox"), t.vec(now, "task_target_bbox")
+        obj, target = t.object_box(now), t.target_box(now)
         if self.phase == "lower":
-            if not t.has_box(target):
-                self._finish(FAILED, "the stage has no target")
-                return None
+            if not (t.has_box(obj) and t.has_box(target)):
+                return _hold(t.CLOSE)  # not detected on this frame
             self._steps += 1
             if not t.grasped(now) or (self._steps > int(self.p["stall_steps"]) and self._supported(w)):
                 self.phase = "release"
@@ -327,126 +332,89 @@ class RetreatUntilSeparated(Recovery):
 
     def act(self, w: Window) -> np.ndarray | None:
         now = w.now
-        if t.scalar(now, "phi_eef_object_dist") >= self.p["distance"] and t.scalar(now, "phi_grasp") < 0.5:
+        dist = t.eef_object_dist(now)
+        if dist is not None and dist >= self.p["distance"] and t.scalar(now, "phi_grasp") < 0.5:
             self._finish(DONE)
             return None
         eef = t.vec(now, "robot0_eef_pos")
         return t.move_action(eef, eef + [0.0, 0.0, 0.05], t.OPEN, max_action=self.p["max_action"])
 
 
-class OperateHandle(Recovery):
-    """Carry an articulation stage (open/close a drawer, turn a knob on/off) to its goal with the
-    oracle's handle motions (services/common/handles.py), recomputed every step from the live handle
-    box and motion direction: a drawer's bar is faced, gripped and pulled or pushed along the
-    drawer's axis (hooked from above where the palm would reach into the table under a low bar, its
-    last centimetres pushed with a finger), a knob's lever is pushed along its tangent with a finger.
-    Done once the stage's goal milestone is reached or the env moves on to the next stage; the hand
-    then opens and backs off ``retreat`` from the fixture and ``rise`` up (at most ``release_steps``
-    steps). A hand that starts (or stalls) within ``restage_radius`` of the handle, where the
-    policy left it (resting on the bar, under it), first rises straight up to ``restage_height``
-    over the handle's top, so the approach starts from above as the oracle's does. An attempt
-    stalls when for ``stall_steps`` steps neither the hand moved ``stall_motion`` nor the handle came
-    ``min_progress`` closer to its goal; the next attempt restages first. Fails when the stage is
-    not an articulation, after ``max_steps`` operating steps, or after ``max_attempts`` stalls."""
+@dataclass(frozen=True)
+class PolicyUnder:
+    """What a recovery returns instead of an action to let the frozen policy act under another
+    instruction on this step (instruction redirection)."""
 
-    name = "operate_handle"
+    instruction: str
 
-    #: Parameters passed through to the shared handle geometry (HandleParams fields).
-    GEOMETRY = ("overshoot", "handle_tolerance", "handle_hover", "bar_standoff", "bar_open_gap", "bar_sag",
-                "hook_tilt", "hook_press")
+
+def _words(name: str) -> str:
+    """A scene name as words: ``cream_cheese_1`` -> ``cream cheese``, ``wooden_cabinet_1_top_region`` ->
+    ``wooden cabinet top``."""
+    parts = [p for p in name.split("_") if p and not p.isdigit() and p not in ("region", "contain", "init")]
+    return " ".join(parts)
+
+
+def subgoal_instruction(milestone: str) -> str:
+    """The instruction of the sub-goal a milestone names ("" when it names none the policy knows):
+    ``grasped(cream_cheese_1)`` -> ``pick up the cream cheese``, ``open(wooden_cabinet_1_top_region)``
+    -> ``open the wooden cabinet top``, ``in(bowl_1,plate_1)`` -> ``put the bowl in the plate``."""
+    kind, _, rest = milestone.split("#")[0].partition("(")
+    raw = [a for a in rest.rstrip(")").split(",") if a]
+    if not raw or raw[0].endswith(".handle"):
+        return ""  # reached(r.handle): a handle is not something the policy is asked to pick up
+    args = [_words(a) for a in raw]
+    kind = kind.strip()
+    if kind in ("reached", "grasped", "lifted"):
+        return f"pick up the {args[0]}"
+    if kind in ("above", "on", "released") and len(args) == 2:
+        return f"put the {args[0]} on the {args[1]}"
+    if kind == "in" and len(args) == 2:
+        return f"put the {args[0]} in the {args[1]}"
+    if kind in ("open", "close"):
+        return f"{kind} the {args[0]}"
+    if kind in ("turnon", "turnoff"):
+        return f"turn {kind[4:]} the {args[0]}"
+    return ""
+
+
+class RedirectInstruction(Recovery):
+    """Instruction redirection: the frozen policy keeps acting, under the instruction of the
+    sub-goal the first missing milestone that names one gives (``pick up the bowl`` while the bowl
+    is not lifted, ``open the top drawer`` while it is shut), for at most ``steps`` steps. Done
+    when the last milestone of that sub-goal is reached; fails when no missing milestone names a
+    sub-goal or the steps run out.
+    The policy does the work it can do; the harness only chooses what it is asked."""
+
+    name = "redirect_instruction"
 
     def start(self, w: Window, memory: EpisodeMemory) -> None:
         super().start(w, memory)
-        now = w.now
-        geometry = {k: self.p[k] for k in self.GEOMETRY if k in self.p}
-        geometry["handle_max_action"] = self.p.get("max_action", 1.0)
-        self.skill = handles.HandleSkill(dataclasses.replace(handles.HandleParams(), **geometry),
-                                         self._move, t.STAGE_KINDS)
-        self.kind = t.stage_kind(now) if t.articulation_stage(now) else ""
-        # The stage's goal milestone: the first of its kind from m* on (open(r), turnon(s), ...).
-        names = list(w.milestone_names)
-        m_star = first_missing(names, now.milestones)
-        tail = names[names.index(m_star):] if m_star in names else []
-        self.goal = next((n for n in tail if milestone_kind(n) == self.kind), "")
-        self.phase = "operate"
-        self.attempts = 0
-        self._restage_at = -1.0
-        if self.kind:
-            self._maybe_restage(now)
-        self._steps = 0
-        self._track: list[tuple[np.ndarray, float]] = []
-        self._out = np.zeros(3)
-        self._release_from = np.zeros(3)
-        self._released = 0
+        missing = [m for m in w.milestone_names if m not in w.now.milestones]
+        first = next((i for i, m in enumerate(missing) if subgoal_instruction(m)), -1)
+        self.instruction = subgoal_instruction(missing[first]) if first >= 0 else ""
+        self.goal = missing[first] if first >= 0 else (missing[0] if missing else "")
+        # The sub-goal is done at the last milestone of the run that shares its instruction
+        # (reached, grasped, lifted: "pick up the bowl" is done once the bowl is lifted).
+        for m in missing[first + 1:] if first >= 0 else ():
+            if subgoal_instruction(m) != self.instruction:
+                break
+            self.goal = m
+        self._left = int(self.p["steps"])
 
-    def _move(self, eef: np.ndarray, goal: np.ndarray, gripper: float, limit: float) -> np.ndarray:
-        return t.move_action(eef, goal, gripper, max_action=limit)
-
-    def _maybe_restage(self, now) -> None:
-        """Rise first when the hand is near the handle and below the restage height."""
-        handle = t.vec(now, "task_object_bbox")
-        eef = t.vec(now, "robot0_eef_pos")
-        top = float(handle[5]) + self.p["restage_height"]
-        if t.scalar(now, "phi_eef_object_dist") < self.p["restage_radius"] and eef[2] < top - 0.01:
-            self.phase, self._restage_at, self._restage_steps = "restage", top, 0
-
-    def _goal_holds(self, w: Window) -> bool:
-        now = w.now
-        if self.goal and self.goal in now.milestones:
-            return True
-        return t.stage_kind(now) != self.kind  # the env moved on: this stage's goal holds
-
-    def act(self, w: Window) -> np.ndarray | None:
-        now = w.now
-        eef = np.asarray(t.vec(now, "robot0_eef_pos"), dtype=np.float64)
-        if self.phase == "restage":
-            self._restage_steps += 1
-            if eef[2] < self._restage_at - 0.01 and self._restage_steps <= 30 and not self._goal_holds(w):
-                return t.move_action(eef, np.array([eef[0], eef[1], self._restage_at]), t.OPEN, max_action=0.5)
-            self.phase, self._track = "operate", []
-        if self.phase == "operate":
-            if not self.kind:
-                self._finish(FAILED, "the stage is not an articulation with a published handle")
-                return None
-            if self._goal_holds(w):
-                self.phase, self._release_from = "release", eef.copy()
-            else:
-                return self._operate(w, eef)
-        if self._released >= int(self.p["release_steps"]):
+    def act(self, w: Window) -> np.ndarray | PolicyUnder | None:  # type: ignore[override]
+        if not self.instruction:
+            self._finish(FAILED, f"milestone {self.goal!r} names no sub-goal instruction")
+            return None
+        if self.goal in w.now.milestones:
             self._finish(DONE)
             return None
-        goal = self._release_from + self._out * self.p["retreat"] + np.array([0.0, 0.0, self.p["rise"]])
-        opened = t.scalar(now, "phi_gripper_aperture") >= self.p["open_gap"]
-        if opened and np.linalg.norm(goal - eef) < 0.01:
-            self._finish(DONE)
+        if self._left <= 0:
+            self._finish(FAILED, f"{self.goal} not reached after {int(self.p['steps'])} steps under "
+                                 f"{self.instruction!r}")
             return None
-        self._released += 1
-        return t.move_action(eef, goal, t.OPEN, max_action=0.5)
-
-    def _operate(self, w: Window, eef: np.ndarray) -> np.ndarray | None:
-        self._steps += 1
-        if self._steps > int(self.p["max_steps"]):
-            self._finish(FAILED, f"the {self.kind} stage's goal does not hold after {self._steps - 1} steps")
-            return None
-        now = w.now
-        left = t.handle_remaining(now)
-        self._track.append((eef, left))
-        n = int(self.p["stall_steps"])
-        if len(self._track) > n:
-            eef0, left0 = self._track[-n - 1]
-            if float(np.linalg.norm(eef - eef0)) < self.p["stall_motion"] and left0 - left < self.p["min_progress"]:
-                self.attempts += 1
-                if self.attempts >= int(self.p["max_attempts"]):
-                    self._finish(FAILED, f"no progress for {n} steps in {self.attempts} attempt(s): the hand "
-                                         f"stalled {left:.3f} m short of the goal")
-                    return None
-                self._track = []
-                self._maybe_restage(now)
-                if self.phase == "restage":
-                    return self.act(w)
-        obs = t.float_obs(now)
-        self._out = self.skill.outward(obs)
-        return self.skill.act(obs)
+        self._left -= 1
+        return PolicyUnder(self.instruction)
 
 
 class Chain(Recovery):
@@ -536,32 +504,13 @@ RECOVERIES: dict[str, RecoverySpec] = {
             "speed": _f(0.25, 0.05, 1.0, "largest downward action"),
             "gap": _f(0.005, 0.0, 0.05, "object bottom over the target's floor (m) that counts as supported"),
             "stall_steps": _i(6, 2, 50, "steps over which a stalled object counts as supported"),
-            "stall_motion": _f(0.003, 0.0, 0.02, "object travel (m) under which it has stalled"),
+            "stall_motion": _f(0.01, 0.0, 0.05, "perceived object travel (m) under which it has stalled"),
             "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as released"),
             "release_steps": _i(15, 1, 60, "most steps spent opening"),
         }, LowerUntilSupportedThenRelease.__doc__ or ""),
-        RecoverySpec("operate_handle", OperateHandle, {
-            "max_steps": _i(250, 20, 600, "steps of operating before the intervention fails"),
-            "stall_steps": _i(40, 5, 200, "steps without progress that count as stalled"),
-            "stall_motion": _f(0.01, 0.0, 0.1, "hand travel (m) over stall_steps that counts as progress"),
-            "min_progress": _f(0.005, 0.0, 0.05, "handle travel (m) toward its goal that counts as progress"),
-            "max_action": _f(1.0, 0.1, 1.0, "largest translational action"),
-            "overshoot": _f(0.05, 0.0, 0.15, "travel (m) commanded past the handle's goal position"),
-            "handle_tolerance": _f(0.008, 0.002, 0.03, "position tolerance (m) of the finger push's start"),
-            "handle_hover": _f(0.05, 0.01, 0.15, "height (m) over the handle to move across at"),
-            "bar_standoff": _f(0.06, 0.02, 0.15, "standoff (m) in front of a bar before moving in to grip it"),
-            "bar_open_gap": _f(0.045, 0.02, 0.08, "finger gap (m) while approaching a bar"),
-            "bar_sag": _f(0.008, 0.0, 0.03, "how far (m) below a bar the sideways hand aims"),
-            "hook_tilt": _f(0.4, 0.0, 0.8, "tilt (rad) of the fingers hooking a low bar"),
-            "hook_press": _f(0.05, 0.0, 0.1, "how hard (m of goal offset) the hook presses into the bar"),
-            "max_attempts": _i(1, 1, 5, "stalled attempts before the intervention fails"),
-            "restage_radius": _f(0.0, 0.0, 0.3, "grip site to handle box (m) within which the hand rises first (0: never)"),
-            "restage_height": _f(0.1, 0.02, 0.3, "height (m) over the handle's top to rise to"),
-            "release_steps": _i(25, 0, 100, "most steps spent opening and backing off once the goal holds"),
-            "retreat": _f(0.05, 0.0, 0.2, "how far (m) the hand backs off from the fixture once done"),
-            "rise": _f(0.05, 0.0, 0.2, "how far (m) the hand rises once done"),
-            "open_gap": _f(0.07, 0.02, 0.08, "finger gap (m) that counts as open"),
-        }, OperateHandle.__doc__ or ""),
+        RecoverySpec("redirect_instruction", RedirectInstruction, {
+            "steps": _i(60, 5, 80, "steps the policy acts under the sub-goal's instruction"),
+        }, RedirectInstruction.__doc__ or ""),
         RecoverySpec("retreat_until_separated", RetreatUntilSeparated, {
             "distance": _f(0.06, 0.0, 0.3, "grip site to object box (m) that counts as separated"),
             "max_action": _f(0.5, 0.05, 1.0, "largest translational action"),

@@ -1,33 +1,38 @@
-"""Tools of the built-in library: geometry on live bindings, motion with collision checks, grasp proposals.
+"""Tools of the built-in library: perception on live frames, motion with collision checks, grasp proposals.
 
-Everything here reads the live object and receptacle bindings that the env families publish in the
-observation (``task_object_bbox``, ``task_target_bbox``, ``robot0_eef_pos``/``_quat``, ``phi_*``,
-``object_state``), never a task constant, so a recovery written with these tools transfers to any
-pick-and-place stage by rebinding. Actions are robosuite OSC_POSE deltas: translation scaled to
-[-1, 1] (1.0 = 5 cm), rotation as an axis-angle scaled to [-1, 1] (1.0 = 0.5 rad), then the gripper
-(-1 opens, +1 closes, 0 keeps the current opening: the Panda gripper integrates its command).
+Objects are known only through the frame's perception tool (``frame.perceive``: noisy boxes of
+the object the current step is about, of its target and of the rest of the scene;
+services/harness/runtime/perception.py), the robot through proprioception (``robot0_eef_pos``/
+``_quat``) and the physical signals ``phi_*``; never a task constant, so a recovery written with
+these tools transfers to any pick-and-place stage. Actions are robosuite OSC_POSE deltas:
+translation scaled to [-1, 1] (1.0 = 5 cm), rotation as an axis-angle scaled to [-1, 1] (1.0 =
+0.5 rad), then the gripper (-1 opens, +1 closes, 0 keeps the current opening: the Panda gripper
+integrates its command).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from services.common import handles
 from services.common.rotations import quat_to_mat, rotvec
-from services.harness.runtime.api import Frame
+from services.harness.runtime.api import Detection, Frame
 from services.common.milestone_kinds import STAGE_KINDS
 
 OPEN, CLOSE, KEEP = -1.0, 1.0, 0.0
 #: The hand pointing down with the fingers closing along world y (the default Panda pose).
 DOWN = np.diag([1.0, -1.0, -1.0])
-#: Floats per object in LIBERO's ``object_state``: pos, quat, pos and quat relative to the eef.
-OBJECT_STATE_STRIDE = 14
+#: Stage kinds that move a handle (a drawer, a knob) instead of carrying an object.
+ARTICULATION_KINDS = ("open", "close", "turnon", "turnoff")
+#: Seconds per env step (LIBERO and robosuite run their controllers at 20 Hz).
+STEP_S = 0.05
+_NO_BOX = np.zeros(6)
 
 
-# ---- reading the live bindings ------------------------------------------------------------------
+# ---- reading a frame ----------------------------------------------------------------------------
 
 
 def vec(frame: Frame, name: str) -> np.ndarray:
@@ -44,14 +49,61 @@ def scalar(frame: Frame, name: str) -> float:
     return float(value[0]) if value is not None and len(value) else 0.0
 
 
+def detection(frame: Frame, query: str) -> Detection | None:
+    """The perception tool's estimate of ``"object"`` or ``"target"`` on this frame (None: not detected)."""
+    found: Any = frame.perceive(query)
+    return found if isinstance(found, Detection) else None
+
+
+def object_box(frame: Frame) -> np.ndarray:
+    """Estimated box of the object the current step is about (zeros when not detected)."""
+    d = detection(frame, "object")
+    return _NO_BOX if d is None else d.box
+
+
+def target_box(frame: Frame) -> np.ndarray:
+    """Estimated box of where the object must go (zeros when not detected or the step has none)."""
+    d = detection(frame, "target")
+    return _NO_BOX if d is None else d.box
+
+
+def object_pos(frame: Frame) -> np.ndarray | None:
+    """Estimated centre of the object, None when not detected."""
+    d = detection(frame, "object")
+    return None if d is None else d.pos
+
+
 def box_center(box: np.ndarray) -> np.ndarray:
     """Centre of an [min xyz, max xyz] box."""
     return (box[:3] + box[3:]) / 2
 
 
 def has_box(box: np.ndarray) -> bool:
-    """Whether a published box is bound (the families publish zeros when the stage has none)."""
+    """Whether a box is bound (zeros when nothing was detected)."""
     return bool(np.any(box))
+
+
+def box_distance(point: np.ndarray, box: np.ndarray) -> float:
+    """Distance (m) from a point to a box, 0 inside it."""
+    gap = np.maximum(np.maximum(box[:3] - point, point - box[3:]), 0.0)
+    return float(np.linalg.norm(gap))
+
+
+def eef_object_dist(frame: Frame) -> float | None:
+    """Distance (m) from the grip site to the estimated object box; None when not detected."""
+    box = object_box(frame)
+    return box_distance(np.asarray(vec(frame, "robot0_eef_pos"), dtype=np.float64), box) if has_box(box) else None
+
+
+def object_speed(frames: Sequence[Frame], horizon: int) -> float:
+    """Estimated speed (m/s) of the object over the last ``horizon`` frames (0 when not seen at both ends)."""
+    if len(frames) < 2:
+        return 0.0
+    n = min(max(1, horizon), len(frames) - 1)
+    a, b = object_pos(frames[-n - 1]), object_pos(frames[-1])
+    if a is None or b is None:
+        return 0.0
+    return float(np.linalg.norm(b - a)) / (n * STEP_S)
 
 
 def grasped(frame: Frame) -> bool:
@@ -64,43 +116,27 @@ def gripper_command(action: np.ndarray | None) -> float:
     return 0.0 if action is None or len(action) < 7 else float(action[6])
 
 
-def other_object_positions(frame: Frame, task_object: np.ndarray, min_separation: float = 0.02) -> np.ndarray:
-    """Positions of the scene's objects other than the task object, from ``object_state`` ([n, 3]).
-
-    The task object is the entry nearest the live task-object position; zero padding is dropped.
-    """
-    state = frame.obs.get("object_state")
-    if state is None:
-        return np.zeros((0, 3))
-    n = len(state) // OBJECT_STATE_STRIDE
-    blocks = np.asarray(state[: n * OBJECT_STATE_STRIDE], dtype=np.float64).reshape(n, OBJECT_STATE_STRIDE)
-    blocks = blocks[np.any(blocks != 0.0, axis=1)]
-    pos = blocks[:, :3]
-    return pos[np.linalg.norm(pos - task_object, axis=1) > min_separation]
+def other_object_positions(frame: Frame) -> np.ndarray:
+    """Estimated positions of the scene's other objects ([n, 3]; those the detector missed are absent)."""
+    found: Any = frame.perceive("others")
+    pos = [d.pos for d in found or () if isinstance(d, Detection)]
+    return np.array(pos, dtype=np.float64).reshape(-1, 3)
 
 
-def float_obs(frame: Frame) -> dict[str, np.ndarray]:
-    """The frame's observation tensors as float64 arrays (what the shared handle geometry reads)."""
-    return {k: np.asarray(v, dtype=np.float64) for k, v in frame.obs.items()}
-
-
-# ---- articulation stages (a drawer's bar, a knob's lever) -------------------------------------------
+# ---- the stage being worked on (task knowledge) -------------------------------------------------
 
 
 def stage_kind(frame: Frame) -> str:
-    """Predicate kind of the goal stage being worked on (``task_stage``; "" when unpublished)."""
-    return handles.stage_kind(frame.obs, STAGE_KINDS)
+    """Predicate kind of the goal stage being worked on (``task_stage`` one-hot; "" when unpublished)."""
+    stage = frame.obs.get("task_stage")
+    if stage is None or len(stage) != len(STAGE_KINDS) or not np.any(stage):
+        return ""
+    return STAGE_KINDS[int(np.argmax(stage))]
 
 
 def articulation_stage(frame: Frame) -> bool:
-    """The stage moves a handle (open/close a drawer, turn a knob) along a published direction."""
-    return (stage_kind(frame) in handles.ARTICULATION_KINDS and has_box(vec(frame, "task_object_bbox"))
-            and bool(np.any(vec(frame, "task_motion_dir"))))
-
-
-def handle_remaining(frame: Frame) -> float:
-    """How far (m) the handle's centre still is from its goal position (``task_target_pos``)."""
-    return handles.remaining(frame.obs)
+    """The stage moves a handle (open/close a drawer, turn a knob) and the handle is detected."""
+    return stage_kind(frame) in ARTICULATION_KINDS and has_box(object_box(frame))
 
 
 # ---- orientation --------------------------------------------------------------------------------

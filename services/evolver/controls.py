@@ -1,0 +1,40 @@
+"""Per-arm numbers of a results table: success, who did the work, and the do-nothing control.
+
+A success the recoveries carried is not a success of the policy. Every arm of a results table
+(the bare policy, the harness, the harness around a do-nothing policy) reports, besides its success
+rate with a Wilson 95 % interval, the share of actions recoveries took over its successful
+episodes and the share of its successes in which the policy was in control at the success step
+(no intervention still in control when the episode ended: ``in_control_at_success``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from services.evolver.store import Rollout, RolloutStore
+from zetta.stats import wilson
+
+#: The intervention outcome of a recovery still in control at success (services/harness/runtime/engine.py).
+IN_CONTROL_AT_SUCCESS = "in_control_at_success"
+
+
+def policy_in_control_at_success(store: RolloutStore, rollout: Rollout) -> bool:
+    """Whether the policy, not a recovery, was in control when the episode succeeded."""
+    return not any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in store.trace(rollout).interventions)
+
+
+def arm(store: RolloutStore, rollouts: Sequence[Rollout]) -> dict[str, Any]:
+    """One arm's numbers, JSON-ready."""
+    n = len(rollouts)
+    wins = [r for r in rollouts if r.success]
+    lo, hi = wilson(len(wins), n)
+    actions = sum(r.policy_steps + r.recovery_steps for r in wins)
+    in_control = sum(policy_in_control_at_success(store, r) for r in wins if r.interventions)
+    in_control += sum(1 for r in wins if not r.interventions)
+    return {
+        "successes": len(wins), "episodes": n, "rate": len(wins) / n if n else 0.0, "wilson95": [lo, hi],
+        "seeds": sorted(r.seed for r in rollouts),
+        "recovery_share": sum(r.recovery_steps for r in wins) / actions if actions else 0.0,
+        "policy_in_control_at_success": in_control / len(wins) if wins else 0.0,
+    }

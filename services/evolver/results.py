@@ -1,0 +1,150 @@
+"""The machine-readable results of `zetta evolve experiment`, and the tables rendered from them.
+
+`results.json` holds everything a reader needs to trust a number and rerun it: the command, the
+commit (and whether the tree was dirty), the policy and the hash of its checkpoint, the do-nothing
+control's model, every task's splits (dev, gate, test seeds), and per task the test arms (bare
+policy, evolved harness, the harness around the do-nothing policy) with Wilson 95 % intervals,
+the recoveries' share of actions over successful episodes and the share of successes with the
+policy in control at the success step; the means, the transfer rows and the wall time per phase.
+docs/evolution.md's results block is rendered from this file by scripts/gen_evolution_tables.py,
+never typed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from services.evolver.store import RolloutStore
+
+SCHEMA = 1
+#: Marks of the generated block in a Markdown page.
+BEGIN = "<!-- BEGIN GENERATED: evolution results (scripts/gen_evolution_tables.py) -->"
+END = "<!-- END GENERATED: evolution results -->"
+ARMS = ("bare", "final", "control")
+
+
+def commit(root: Path) -> dict[str, Any]:
+    """The commit the code ran at, and whether the tree had uncommitted changes ("" outside git)."""
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30,
+                                  check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
+def checkpoint_hash(path: Path) -> str:
+    """SHA-256 over a checkpoint directory's files (relative path, NUL, bytes; sorted); "" if absent."""
+    if not path.exists():
+        return ""
+    h = hashlib.sha256()
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    for f in files:
+        h.update(str(f.relative_to(path.parent if path.is_file() else path)).encode() + b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def policy_provenance(model: str) -> dict[str, Any]:
+    """The served policy: its name, checkpoint directory and hash (none for scripted models)."""
+    import os
+
+    from services.common.policies import DEFAULT_POLICY, PRIVILEGED_BASELINE, default_checkpoint
+    from services.policy_worker.vla.policy import STATE_CHECKPOINT
+
+    paths = {DEFAULT_POLICY: str(default_checkpoint()),
+             PRIVILEGED_BASELINE: os.environ.get("ZETTA_STATE_BASELINE_CHECKPOINT", str(STATE_CHECKPOINT))}
+    path = paths.get(model, "")
+    return {"model": model, "checkpoint": path, "checkpoint_sha256": checkpoint_hash(Path(path)) if path else ""}
+
+
+def _mean(rows: Sequence[Mapping[str, Any]], arm: str, key: str = "rate") -> float:
+    values = [float(r["arms"][arm][key]) for r in rows if arm in r.get("arms", {})]
+    return sum(values) / len(values) if values else 0.0
+
+
+def collect(out: Path, suites: Sequence[str], transfer_suite: str, meta: Mapping[str, Any]) -> dict[str, Any]:
+    """The results of an experiment directory, from what its stores recorded."""
+    data: dict[str, Any] = {"schema": SCHEMA, **meta, "suites": {}, "transfer": [], "wall_s": {}}
+    for suite in suites:
+        store = RolloutStore(out / suite)
+        finals = sorted((f for f in store.events("final") if f["suite"] == suite and "arms" in f),
+                        key=lambda f: (len(f["task"]), f["task"]))
+        tasks = [{"task": f["task"], "harness": f["harness"], "arms": f["arms"], "split": f.get("split", {}),
+                  "rollouts": len(store.query(task=f["task"]))} for f in finals]
+        data["suites"][suite] = {"tasks": tasks, "mean": {arm: _mean(tasks, arm) for arm in ARMS},
+                                 "rollouts": len(store.query())}
+        data["wall_s"][suite] = sum(float(e["wall_s"]) for e in store.events("wall"))
+        store.close()
+    tdir = out / f"transfer-{transfer_suite}"
+    if transfer_suite and (tdir / "index.sqlite").exists():
+        tstore = RolloutStore(tdir)
+        data["transfer"] = [{"suite": f["suite"], "task": f["task"], "harness": f["harness"], "source": f["source"],
+                             "arms": f["arms"]} for f in tstore.events("transfer_source") if "arms" in f]
+        data["wall_s"]["transfer"] = sum(float(e["wall_s"]) for e in tstore.events("wall"))
+        tstore.close()
+    return data
+
+
+def write(path: Path, data: Mapping[str, Any]) -> Path:
+    """Write the results file (sorted keys: a rerun that reproduces gives the same bytes but times)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    return path
+
+
+def _cell(a: Mapping[str, Any]) -> str:
+    lo, hi = a["wilson95"]
+    return f"{a['successes']}/{a['episodes']} = {a['rate']:.0%} [{lo:.0%}, {hi:.0%}]" if a["episodes"] else "-"
+
+
+def render(data: Mapping[str, Any]) -> str:
+    """The Markdown tables of a results file."""
+    pol = data.get("policy", {})
+    src = data.get("source", {})
+    lines = [f"Generated from `{data.get('results_path', 'results.json')}` (schema {data.get('schema')}): commit "
+             f"`{src.get('commit', '')[:12] or 'unknown'}`{' (dirty tree)' if src.get('dirty') else ''}, policy "
+             f"`{pol.get('model', '')}` (checkpoint sha256 `{pol.get('checkpoint_sha256', '')[:16] or 'none'}`), "
+             f"control `{data.get('control_model', '')}`, command `{data.get('command', '')}`.", "",
+             "Test seeds only (no decision read them). *harness + nothing*: the same harness around a policy "
+             "that outputs zero actions. *recoveries*: share of actions taken by recoveries over the successful "
+             "harness episodes; *policy at success*: share of those successes with the policy in control at the "
+             "success step.", ""]
+    for suite, body in data.get("suites", {}).items():
+        lines += [f"#### {suite}", "",
+                  "| task | bare | harness | delta | harness + nothing | recoveries | policy at success | harness version |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for t in body["tasks"]:
+            b, f, c = (t["arms"][k] for k in ARMS)
+            lines.append(f"| {t['task']} | {_cell(b)} | {_cell(f)} | {f['rate'] - b['rate']:+.0%} | {_cell(c)} | "
+                         f"{f['recovery_share']:.0%} | {f['policy_in_control_at_success']:.0%} | {t['harness']} |")
+        m = body["mean"]
+        lines += [f"| **mean** | {m['bare']:.1%} | {m['final']:.1%} | {m['final'] - m['bare']:+.1%} | "
+                  f"{m['control']:.1%} | | | |", "",
+                  f"Rollouts: {body['rollouts']}; wall time {data.get('wall_s', {}).get(suite, 0.0):.0f} s.", ""]
+    if data.get("transfer"):
+        lines += ["#### Zero-shot transfer", "",
+                  "| suite | task | harness (evolved on) | bare | harness | delta | harness + nothing |",
+                  "|---|---|---|---|---|---|---|"]
+        for t in data["transfer"]:
+            b, f, c = (t["arms"][k] for k in ARMS)
+            lines.append(f"| {t['suite']} | {t['task']} | {t['harness']} ({t['source']}) | {_cell(b)} | {_cell(f)} | "
+                         f"{f['rate'] - b['rate']:+.0%} | {_cell(c)} |")
+        lines += ["", f"Transfer wall time {data.get('wall_s', {}).get('transfer', 0.0):.0f} s.", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def replace_block(page: str, block: str) -> str:
+    """``page`` with the text between :data:`BEGIN` and :data:`END` replaced by ``block``."""
+    if page.count(BEGIN) != 1 or page.count(END) != 1 or page.index(BEGIN) > page.index(END):
+        raise ValueError(f"the page needs one {BEGIN!r} line before one {END!r} line")
+    head, rest = page.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{block}{END}{tail}"
