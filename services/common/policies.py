@@ -20,12 +20,22 @@ DEFAULT_POLICY = "zetta-vla-image"
 #: The state-based VLA that reads object poses; loadable for comparison, never a default.
 PRIVILEGED_BASELINE = "privileged-state-baseline"
 
-_CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "policy_worker" / "checkpoints"
+#: Where the shipped checkpoints live (one directory each, named as the model).
+CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "policy_worker" / "checkpoints"
 
 
 def default_checkpoint() -> Path:
     """The image VLA's checkpoint directory (``ZETTA_VLA_CHECKPOINT`` or the shipped one)."""
-    return Path(os.environ.get("ZETTA_VLA_CHECKPOINT") or _CHECKPOINT_ROOT / DEFAULT_POLICY)
+    return Path(os.environ.get("ZETTA_VLA_CHECKPOINT") or CHECKPOINT_ROOT / DEFAULT_POLICY)
+
+
+def checkpoint_dir(model: str) -> Path | None:
+    """The checkpoint a served model loads (after its variable), None for a scripted model."""
+    if model == DEFAULT_POLICY:
+        return default_checkpoint()
+    if model == PRIVILEGED_BASELINE:
+        return Path(os.environ.get("ZETTA_STATE_BASELINE_CHECKPOINT") or CHECKPOINT_ROOT / PRIVILEGED_BASELINE)
+    return None
 
 
 def policy_env_config(model: str) -> dict[str, Any]:

@@ -8,7 +8,6 @@ the others, so the commands do not import each other.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY

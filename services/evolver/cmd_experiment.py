@@ -33,7 +33,6 @@ from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
 from services.evolver.stack import Bars, endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore, StoreError
-from zetta_wire.stats import wilson
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from services.evolver.store import Rollout, RolloutStore
-from zetta.stats import wilson
+from zetta_wire.stats import wilson
 
 #: The intervention outcome of a recovery still in control at success (services/harness/runtime/engine.py).
 IN_CONTROL_AT_SUCCESS = "in_control_at_success"

@@ -54,15 +54,10 @@ def checkpoint_hash(path: Path) -> str:
 
 def policy_provenance(model: str) -> dict[str, Any]:
     """The served policy: its name, checkpoint directory and hash (none for scripted models)."""
-    import os
+    from services.common.policies import checkpoint_dir
 
-    from services.common.policies import DEFAULT_POLICY, PRIVILEGED_BASELINE, default_checkpoint
-    from services.policy_worker.vla.policy import STATE_CHECKPOINT
-
-    paths = {DEFAULT_POLICY: str(default_checkpoint()),
-             PRIVILEGED_BASELINE: os.environ.get("ZETTA_STATE_BASELINE_CHECKPOINT", str(STATE_CHECKPOINT))}
-    path = paths.get(model, "")
-    return {"model": model, "checkpoint": path, "checkpoint_sha256": checkpoint_hash(Path(path)) if path else ""}
+    path = checkpoint_dir(model)
+    return {"model": model, "checkpoint": str(path or ""), "checkpoint_sha256": checkpoint_hash(path) if path else ""}
 
 
 def _mean(rows: Sequence[Mapping[str, Any]], arm: str, key: str = "rate") -> float:

@@ -122,7 +122,7 @@ class _LLM(BaseHTTPRequestHandler):
 
     requests: list[dict] = []
 
-    def do_POST(self) -> None:  # noqa: N802
+    def do_POST(self) -> None:
         _LLM.requests.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
         patch = {"critic": {"code": CLOSED_ON_NOTHING, "params": {"closed_gap": 0.01, "near": 0.06},
                             "evidence": "closed_on_nothing"}, "recovery": {"template": "acquire"}}

@@ -23,7 +23,7 @@ def test_task_ranges_and_lists_mix() -> None:
 
 
 def _arm(s: int, n: int, seeds: list[int], share: float = 0.0, in_control: float = 1.0) -> dict:
-    from zetta.stats import wilson
+    from zetta_wire.stats import wilson
 
     return {"successes": s, "episodes": n, "rate": s / n, "wilson95": list(wilson(s, n)), "seeds": seeds,
             "recovery_share": share, "policy_in_control_at_success": in_control}

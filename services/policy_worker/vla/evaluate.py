@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY, default_checkpoint
+from services.common.policies import DEFAULT_POLICY, checkpoint_dir
 from zetta_wire.stats import wilson
 
 
@@ -193,11 +193,10 @@ def main(argv=None) -> int:
         rows += evaluate(a.model, suite, tasks, seeds, a.out, a.processes, a.execute_steps, env)
     print(table(rows))
     if a.results:
-        from services.policy_worker.vla.policy import STATE_CHECKPOINT
         from services.policy_worker.vla.results import main as render_page
         from services.policy_worker.vla.results import write_results
 
-        checkpoint = a.checkpoint or str(default_checkpoint() if a.model == DEFAULT_POLICY else STATE_CHECKPOINT)
+        checkpoint = a.checkpoint or str(checkpoint_dir(a.model))
         write_results(a.results, rows, model=a.model, checkpoint=checkpoint, execute_steps=a.execute_steps,
                       command=["zetta", "eval-policy", *(argv if argv is not None else sys.argv[1:])],
                       wall_s=time.monotonic() - start)

@@ -15,16 +15,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from services.common.policies import CHECKPOINT_ROOT, DEFAULT_POLICY, PRIVILEGED_BASELINE
 from services.common.specs import TensorSpec
 from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, state_specs, state_vector
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.text import TextEncoder
 
-#: Shipped checkpoints, relative to the repository root.
-CHECKPOINT_ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
 #: The state-based variant reads the simulator's object poses: a privileged baseline, never a default.
-STATE_CHECKPOINT = CHECKPOINT_ROOT / "privileged-state-baseline"
-IMAGE_CHECKPOINT = CHECKPOINT_ROOT / "zetta-vla-image"
+STATE_CHECKPOINT = CHECKPOINT_ROOT / PRIVILEGED_BASELINE
+IMAGE_CHECKPOINT = CHECKPOINT_ROOT / DEFAULT_POLICY
 
 
 def save_checkpoint(path: str | os.PathLike, model: ZettaVLA, meta: dict, text_cache: dict[str, np.ndarray]) -> None:
