@@ -9,6 +9,24 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import grpc
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+
+#: A Redis outage (refused, reset, timed out, still loading its data) as seen by redis-py.
+STORE_ERRORS = (RedisConnectionError, RedisTimeoutError)
+#: When a client should retry a call that failed because Redis did not answer.
+STORE_RETRY_AFTER_MS = 1000
+
+#: Failed-session ids carried in trailing metadata at most, and their bytes at most: a status must
+#: fit the peer's metadata limit (8 KiB by default), or the client sees RESOURCE_EXHAUSTED instead.
+MAX_FAILED_IDS = 100
+MAX_FAILED_IDS_BYTES = 4096
+#: Longest status message; longer ones are cut (they travel as metadata too).
+MAX_MESSAGE_CHARS = 2000
+
+
+def _printable(value: str) -> bool:
+    return value.isascii() and value.isprintable() and "," not in value
 
 
 class ServiceError(Exception):
@@ -21,6 +39,8 @@ class ServiceError(Exception):
         session_ids: Sequence[str] = (),
         retry_after_ms: int | None = None,
     ) -> None:
+        if len(message) > MAX_MESSAGE_CHARS:
+            message = message[: MAX_MESSAGE_CHARS - 40] + f" ... (cut from {len(message)} characters)"
         super().__init__(message)
         self.code = code
         self.message = message
@@ -28,10 +48,22 @@ class ServiceError(Exception):
         self.retry_after_ms = retry_after_ms
 
     def trailing_metadata(self) -> tuple[tuple[str, str], ...]:
-        """Machine-readable details: failed sessions and a retry hint."""
+        """Machine-readable details: failed sessions (bounded; ``zetta-failed-sessions-more`` counts
+        the ones left out) and a retry hint."""
         md: list[tuple[str, str]] = []
         if self.session_ids:
-            md.append(("zetta-failed-sessions", ",".join(self.session_ids)))
+            kept: list[str] = []
+            size = 0
+            for sid in self.session_ids:
+                if len(kept) == MAX_FAILED_IDS or size + len(sid) + 1 > MAX_FAILED_IDS_BYTES:
+                    break
+                if _printable(sid):
+                    kept.append(sid)
+                    size += len(sid) + 1
+            if kept:
+                md.append(("zetta-failed-sessions", ",".join(kept)))
+            if len(kept) < len(self.session_ids):
+                md.append(("zetta-failed-sessions-more", str(len(self.session_ids) - len(kept))))
         if self.retry_after_ms is not None:
             md.append(("retry-after-ms", str(self.retry_after_ms)))
         return tuple(md)
@@ -67,6 +99,16 @@ def unavailable(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
     return ServiceError(grpc.StatusCode.UNAVAILABLE, message, session_ids)
 
 
+def store_unavailable(exc: BaseException) -> ServiceError:
+    """A Redis outage as UNAVAILABLE with a retry hint: the call did nothing and may be retried."""
+    return ServiceError(
+        grpc.StatusCode.UNAVAILABLE,
+        f"the session registry (Redis) did not answer ({type(exc).__name__}: {exc}); nothing was done, "
+        f"retry in {STORE_RETRY_AFTER_MS} ms",
+        retry_after_ms=STORE_RETRY_AFTER_MS,
+    )
+
+
 def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
     """Re-raise a downstream error with context, keeping its code and failed sessions."""
     sessions: list[str] = []
@@ -89,6 +131,8 @@ def error_boundary(method):  # type: ignore[no-untyped-def]
             return await method(self, request, context)
         except ServiceError as exc:
             await exc.abort(context)
+        except STORE_ERRORS as exc:
+            await store_unavailable(exc).abort(context)
 
     return wrapper
 
@@ -113,6 +157,9 @@ def timed_unary(service: str, method: str, on_code=None):  # type: ignore[no-unt
                 return await fn(self, request, context)
             except ServiceError as exc:
                 code = exc.code.name
+                raise
+            except STORE_ERRORS:
+                code = grpc.StatusCode.UNAVAILABLE.name
                 raise
             finally:
                 hist.observe(time.perf_counter() - start)

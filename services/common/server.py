@@ -55,6 +55,9 @@ class ServiceRunner:
     metrics_port: int
     registrations: Sequence[Registration]
     grace_seconds: float = 5.0
+    #: Largest request this server accepts; a bigger one is refused by gRPC (RESOURCE_EXHAUSTED)
+    #: before any handler runs.
+    max_receive_bytes: int = MAX_MESSAGE_BYTES
     on_drain: Callable[[], Awaitable[None]] | None = None
     server: grpc.aio.Server = field(init=False)
     health: HealthServicer = field(init=False)
@@ -65,7 +68,7 @@ class ServiceRunner:
         self.server = grpc.aio.server(
             options=[
                 ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
-                ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+                ("grpc.max_receive_message_length", self.max_receive_bytes),
                 ("grpc.so_reuseport", 0),
                 ("grpc.keepalive_permit_without_calls", 1),
                 ("grpc.http2.min_ping_interval_without_data_ms", 5_000),

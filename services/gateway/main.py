@@ -28,6 +28,7 @@ async def main() -> None:
     except Exception as exc:  # noqa: BLE001 - any connection failure is fatal at start-up
         raise ConfigError(f"gateway: cannot reach Redis at ZETTA_REDIS_URL={cfg.redis_url}: {exc}") from None
     registry = Registry(client, cfg.redis_prefix, cfg.tombstone_seconds)
+    await registry.start_epoch()
     pool = WorkerPool(registry)
     gateway = GatewayServicer(registry, pool, cfg)
     monitor = Monitor(registry, gateway, cfg)
@@ -53,6 +54,7 @@ async def main() -> None:
             ),
         ],
         grace_seconds=cfg.grace_seconds,
+        max_receive_bytes=cfg.max_request_bytes,
         on_drain=drain,
     )
     await runner.start()

@@ -13,6 +13,8 @@ Keys (``P`` is the prefix):
   P:session:<sid>            hash: family, config, worker, state, lease_ms, expires_ms, reason,
                              action_dtype, action_shape, schema (serialized specs)
   P:leases                   sorted set: live session id -> lease expiry (ms)
+  P:epoch                    random token written once per Redis data set; a gateway that sees it
+                             change or vanish knows Redis lost its state (restart without persistence)
 Closed and LOST session hashes stay for ``tombstone_seconds`` so that late calls get a clear
 status instead of "unknown session".
 """
@@ -266,6 +268,26 @@ class Registry:
         self._heartbeat = client.register_script(_HEARTBEAT)
         self._renew = client.register_script(_RENEW)
         self._activate = client.register_script(_ACTIVATE)
+        self._epoch: str | None = None
+
+    async def start_epoch(self) -> None:
+        """Remember the data set this gateway starts on (creating its epoch token if new)."""
+        key = f"{self.p}:epoch"
+        await self.r.set(key, uuid.uuid4().hex, nx=True)
+        self._epoch = _s(await self.r.get(key))
+
+    async def lost_state(self) -> str:
+        """Why sessions are missing when Redis lost its data since this gateway started; "" when it did not."""
+        if self._epoch is None:
+            return ""
+        key = f"{self.p}:epoch"
+        current = await self.r.get(key)
+        if current is None:
+            await self.r.set(key, uuid.uuid4().hex, nx=True)
+        if current is not None and _s(current) == self._epoch:
+            return ""
+        return ("the session registry (Redis) lost its state after this gateway started (Redis restarted "
+                "without persistence, or its data was flushed)")
 
     async def allocate(
         self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0

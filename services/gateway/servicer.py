@@ -22,6 +22,7 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from zetta.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
+from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
     CREATE,
@@ -66,31 +67,35 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
     async def _resolve(self, sids: Sequence[str]) -> list[SessionRecord]:
         """Records of a batch of RUNNING sessions, or the error that names the bad ones."""
-        if not sids:
-            raise ge.invalid("session_ids is empty; pass the ids returned by CreateSessions")
-        if len(set(sids)) != len(sids):
-            dups = sorted({s for s in sids if sids.count(s) > 1})
-            raise ge.invalid(f"session ids appear more than once in one call: {', '.join(dups)}", dups)
+        check_session_ids(sids, self.cfg.max_sessions_per_call)
         records = await self.registry.lookup(sids)
         unknown = [sid for sid, rec in zip(sids, records) if rec is None]
         if unknown:
-            raise ge.not_found(
-                f"unknown session(s) {', '.join(unknown)}: never created, or closed more than "
-                f"{self.cfg.tombstone_seconds} s ago",
-                unknown,
-            )
+            raise await self._unknown(unknown)
         recs = [r for r in records if r is not None]
         for state, make in (
             (LOST, lambda ids, why: ge.failed_precondition(
-                f"session(s) {', '.join(ids)} LOST ({why}); create new sessions to continue", ids)),
-            (TERMINATED, lambda ids, why: ge.not_found(f"session(s) {', '.join(ids)} closed ({why})", ids)),
+                f"session(s) {name_ids(ids)} LOST ({why}); create new sessions to continue", ids)),
+            (TERMINATED, lambda ids, why: ge.not_found(f"session(s) {name_ids(ids)} closed ({why})", ids)),
             (CREATE, lambda ids, why: ge.failed_precondition(
-                f"session(s) {', '.join(ids)} are still being created; retry when CreateSessions returns", ids)),
+                f"session(s) {name_ids(ids)} are still being created; retry when CreateSessions returns", ids)),
         ):
             bad = [r for r in recs if r.state == state]
             if bad:
                 raise make([r.session_id for r in bad], bad[0].reason or state.lower())
         return recs
+
+    async def _unknown(self, unknown: list[str]) -> ServiceError:
+        """NOT_FOUND for ids the registry does not hold; LOST when the registry itself lost its state."""
+        lost_state = await self.registry.lost_state()
+        if lost_state:
+            return ge.failed_precondition(
+                f"session(s) {name_ids(unknown)} LOST: {lost_state}; create new sessions to continue", unknown)
+        return ge.not_found(
+            f"unknown session(s) {name_ids(unknown)}: never created, or closed more than "
+            f"{self.cfg.tombstone_seconds} s ago",
+            unknown,
+        )
 
     async def _fan_out(
         self,
@@ -249,6 +254,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
     @_timed("CloseSessions")
     async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:  # noqa: N802
+        check_session_ids(list(dict.fromkeys(request.session_ids)), self.cfg.max_sessions_per_call)
         closed, already = await self.close_sessions(list(dict.fromkeys(request.session_ids)), "closed by client")
         return gateway_pb2.CloseSessionsResponse(closed_session_ids=closed, already_closed_session_ids=already)
 
@@ -429,6 +435,9 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 except grpc.aio.AioRpcError as err:
                     raise ge.from_rpc_error(err, f"env worker {records[0].worker_id}") from None
                 hist.observe(time.perf_counter() - start)
+        except ge.STORE_ERRORS as exc:
+            metrics.REQUESTS.labels("StepStream", "UNAVAILABLE").inc()
+            await ge.store_unavailable(exc).abort(context)
         except ServiceError as exc:
             metrics.REQUESTS.labels("StepStream", exc.code.name).inc()
             await exc.abort(context)

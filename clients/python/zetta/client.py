@@ -38,24 +38,29 @@ class ZettaError(Exception):
     """A failed call: the gRPC status, its message, and the sessions at fault."""
 
     def __init__(self, code: grpc.StatusCode, details: str, session_ids: Sequence[str] = (),
-                 retry_after_ms: int | None = None) -> None:
+                 retry_after_ms: int | None = None, more_failed_sessions: int = 0) -> None:
         super().__init__(f"{code.name}: {details}")
         self.code = code
         self.details = details
         self.session_ids = list(session_ids)
         self.retry_after_ms = retry_after_ms
+        #: Failed sessions the server left out of ``session_ids`` to keep the metadata bounded.
+        self.more_failed_sessions = more_failed_sessions
 
     @classmethod
     def from_rpc(cls, err: grpc.aio.AioRpcError) -> "ZettaError":
         """Lift the trailing metadata the gateway sets into attributes."""
         sessions: list[str] = []
         retry: int | None = None
+        more = 0
         for key, value in err.trailing_metadata() or ():
             if key == "zetta-failed-sessions":
                 sessions = [s for s in value.split(",") if s]
             elif key == "retry-after-ms":
                 retry = int(value)
-        return cls(err.code(), err.details() or "", sessions, retry)
+            elif key == "zetta-failed-sessions-more":
+                more = int(value)
+        return cls(err.code(), err.details() or "", sessions, retry, more)
 
 
 @dataclass
