@@ -11,7 +11,8 @@ Keys (``P`` is the prefix):
   P:hb:<id>                  string with a TTL; its existence is the heartbeat
   P:worker:<id>:sessions     set of live session ids on the worker
   P:session:<sid>            hash: family, config, worker, state, lease_ms, expires_ms, reason,
-                             action_dtype, action_shape, schema (serialized specs)
+                             action_dtype, action_shape, action_bounds ("low,high", either
+                             part empty when unbounded), schema (serialized specs)
   P:leases                   sorted set: live session id -> lease expiry (ms)
   P:epoch                    random token written once per Redis data set; a gateway that sees it
                              change or vanish knows Redis lost its state (restart without persistence)
@@ -191,15 +192,15 @@ return {1, tostring(expires)}
 """
 
 _ACTIVATE = """
--- ARGV: prefix, action_dtype, action_shape, schema, now_ms, sid1..sidN
+-- ARGV: prefix, action_dtype, action_shape, schema, now_ms, action_bounds, sid1..sidN
 -- The lease starts now: a build longer than the lease must not leave a born-expired session.
 local n = 0
-for i = 6, #ARGV do
+for i = 7, #ARGV do
   local sk = ARGV[1] .. ':session:' .. ARGV[i]
   if redis.call('HGET', sk, 'state') == 'CREATE' then
     local expires = tonumber(ARGV[5]) + tonumber(redis.call('HGET', sk, 'lease_ms'))
     redis.call('HSET', sk, 'state', 'RUNNING', 'action_dtype', ARGV[2], 'action_shape', ARGV[3],
-      'schema', ARGV[4], 'expires_ms', expires)
+      'schema', ARGV[4], 'expires_ms', expires, 'action_bounds', ARGV[6])
     redis.call('ZADD', ARGV[1] .. ':leases', expires, ARGV[i])
     n = n + 1
   end
@@ -237,6 +238,9 @@ class SessionRecord:
     action_dtype: str
     action_shape: tuple[int, ...]
     expires_ms: int
+    #: Lowest and highest value of every action element (from the action spec); None: unbounded.
+    action_low: float | None = None
+    action_high: float | None = None
 
 
 @dataclass(frozen=True)
@@ -255,7 +259,7 @@ class WorkerRecord:
 class Registry:
     """Typed access to the registry keys; every multi-key change is one Lua script."""
 
-    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms")
+    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms", "action_bounds")
 
     def __init__(self, client: aioredis.Redis, prefix: str, tombstone_seconds: int) -> None:
         self.r = client
@@ -307,11 +311,13 @@ class Registry:
             raise PoolFullError(int(res[1]))
         return [(_s(res[i]), _s(res[i + 1])) for i in range(1, len(res), 2)]
 
-    async def activate(self, sids: Sequence[str], action_dtype: str, action_shape: Sequence[int], schema: bytes) -> int:
+    async def activate(self, sids: Sequence[str], action_dtype: str, action_shape: Sequence[int], schema: bytes,
+                       bounds: tuple[float | None, float | None] = (None, None)) -> int:
         """CREATE -> RUNNING, storing what requests are validated against; the lease starts now."""
+        text = ",".join("" if b is None else repr(float(b)) for b in bounds)
         return int(
             await self._activate(
-                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, now_ms(), *sids]
+                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, now_ms(), text, *sids]
             )
         )
 
@@ -336,7 +342,9 @@ class Registry:
             if row[0] is None:
                 out.append(None)
                 continue
-            state, worker, family, reason, adtype, ashape, expires = (_s(v) if v is not None else "" for v in row)
+            state, worker, family, reason, adtype, ashape, expires, bounds = (
+                _s(v) if v is not None else "" for v in row)
+            low, _, high = bounds.partition(",")
             out.append(
                 SessionRecord(
                     session_id=sid,
@@ -347,6 +355,8 @@ class Registry:
                     action_dtype=adtype,
                     action_shape=tuple(int(d) for d in ashape.split(",") if d),
                     expires_ms=int(expires or 0),
+                    action_low=float(low) if low else None,
+                    action_high=float(high) if high else None,
                 )
             )
         return out

@@ -22,6 +22,7 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from zetta.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
+from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
 from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
@@ -46,8 +47,6 @@ _STATE_ENUM = {
     TERMINATED: types_pb2.SESSION_STATE_TERMINATED,
     LOST: types_pb2.SESSION_STATE_LOST,
 }
-#: Most actions one ActionStep may execute per session (a chunk).
-MAX_CHUNK = 256
 
 
 def _timed(method: str):  # type: ignore[no-untyped-def]
@@ -200,6 +199,8 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 str(dtype_from_wire(opened.action_spec.dtype).newbyteorder("=")),
                 list(opened.action_spec.shape),
                 opened.SerializeToString(),
+                (opened.action_spec.low if opened.action_spec.HasField("low") else None,
+                 opened.action_spec.high if opened.action_spec.HasField("high") else None),
             )
             for sid in sids:
                 info = types_pb2.SessionInfo(
@@ -331,6 +332,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                     f"action of session {rec.session_id}: {len(action.data)} bytes do not match shape {list(shape)}",
                     [rec.session_id],
                 )
+            check_action_values(rec, np.frombuffer(action.data, dtype).reshape(shape))
 
     @_timed("ActionStep")
     async def ActionStep(self, request, context) -> gateway_pb2.ActionStepResponse:  # noqa: N802
@@ -351,6 +353,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def PolicyStep(self, request, context) -> gateway_pb2.PolicyStepResponse:  # noqa: N802
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
 
         async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
             req = env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
@@ -362,6 +365,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def PolicyInfer(self, request, context) -> gateway_pb2.PolicyInferResponse:  # noqa: N802
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
 
         async def call(stub, idx: list[int]):  # type: ignore[no-untyped-def]
             req = env_worker_pb2.InferSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
@@ -373,6 +377,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def RunEpisode(self, request, context) -> gateway_pb2.RunEpisodeResponse:  # noqa: N802
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
         specs = self._specs_for(len(sids), request.specs, "specs") if request.specs else []
         if request.max_steps < 0:
             raise ge.invalid(f"max_steps must be >= 0, got {request.max_steps}")
@@ -419,6 +424,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                         )
                         yield gateway_pb2.StepStreamResponse(step=res.results[0])
                     elif op == "policy":
+                        check_policy_spec(req.policy)
                         res = await stub.PolicyStepSlots(
                             env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sid], policy=req.policy),
                             timeout=self._timeout(self.cfg.step_timeout_ms),
