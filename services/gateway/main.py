@@ -14,6 +14,7 @@ from services.gateway.monitor import Monitor
 from services.gateway.registry import Registry
 from services.gateway.registry_servicer import WorkerRegistryServicer
 from services.gateway.servicer import GatewayServicer
+from services.gateway.vantage import Vantage
 from services.gateway.workers import WorkerPool
 from zetta.v1 import gateway_pb2, gateway_pb2_grpc, registry_pb2, registry_pb2_grpc
 
@@ -31,7 +32,8 @@ async def main() -> None:
     await registry.start_epoch()
     pool = WorkerPool(registry)
     gateway = GatewayServicer(registry, pool, cfg)
-    monitor = Monitor(registry, gateway, cfg)
+    vantage = Vantage()
+    monitor = Monitor(registry, gateway, cfg, vantage)
 
     async def drain() -> None:
         await monitor.stop()
@@ -49,7 +51,7 @@ async def main() -> None:
             ),
             Registration(
                 registry_pb2_grpc.add_WorkerRegistryServiceServicer_to_server,
-                WorkerRegistryServicer(registry, pool, cfg),
+                WorkerRegistryServicer(registry, pool, cfg, vantage),
                 registry_pb2.DESCRIPTOR.services_by_name["WorkerRegistryService"].full_name,
             ),
         ],

@@ -135,13 +135,23 @@ return out
 """
 
 _REGISTER = """
--- ARGV: prefix, worker, address, families, slots, hb_ttl_ms, now_ms, reason, tombstone, held1..heldN
+-- ARGV: prefix, worker, address, families, slots, hb_ttl_ms, now_ms, reason, tombstone, forgotten_reason,
+--       held1..heldN
+-- A held session the registry has no record of at all was forgotten by Redis (a restart without
+-- persistence): it is recorded LOST with forgotten_reason instead of vanishing as "never created".
 local p = ARGV[1]
 local w = ARGV[2]
 local wk = p .. ':worker:' .. w
 local slots = tonumber(ARGV[5])
 local held = {}
-for i = 10, #ARGV do held[ARGV[i]] = true end
+for i = 11, #ARGV do
+  held[ARGV[i]] = true
+  local sk = p .. ':session:' .. ARGV[i]
+  if redis.call('EXISTS', sk) == 0 then
+    redis.call('HSET', sk, 'state', 'LOST', 'reason', ARGV[10], 'worker', w)
+    redis.call('EXPIRE', sk, tonumber(ARGV[9]))
+  end
+end
 local kept = {}
 local lost = {}
 if redis.call('HGET', wk, 'alive') == '1' then
@@ -398,8 +408,11 @@ class Registry:
     ) -> list[str]:
         """(Re)register a worker; returns the held sessions it may keep."""
         reason = f"worker {worker_id} re-registered without this session"
+        forgotten = (f"the session registry (Redis) lost this session's record (restarted without persistence, "
+                     f"or flushed); worker {worker_id} still held it and dropped it")
         kept = await self._register(
-            args=[self.p, worker_id, address, ",".join(families), slots, hb_ttl_ms, now_ms(), reason, self.tombstone, *held]
+            args=[self.p, worker_id, address, ",".join(families), slots, hb_ttl_ms, now_ms(), reason, self.tombstone,
+                  forgotten, *held]
         )
         return [_s(k) for k in kept]
 

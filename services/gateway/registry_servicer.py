@@ -8,6 +8,7 @@ from services.common import grpc_errors as ge
 from services.common.grpc_errors import error_boundary
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import Registry
+from services.gateway.vantage import Vantage
 from services.gateway.workers import WorkerPool
 from zetta.v1 import registry_pb2, registry_pb2_grpc
 
@@ -17,10 +18,12 @@ log = logging.getLogger(__name__)
 class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
     """Writes worker records and heartbeat keys; the monitor reads them."""
 
-    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig,
+                 vantage: Vantage | None = None) -> None:
         self.registry = registry
         self.pool = pool
         self.cfg = config
+        self.vantage = vantage or Vantage()
 
     @error_boundary
     async def RegisterWorker(self, request, context) -> registry_pb2.RegisterWorkerResponse:  # noqa: N802
@@ -48,7 +51,11 @@ class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
 
     @error_boundary
     async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:  # noqa: N802
-        known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+        try:
+            known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+        except ge.STORE_ERRORS as exc:
+            self.vantage.blind(f"redis: a heartbeat of {request.worker_id} could not be written: {exc}")
+            raise
         return registry_pb2.HeartbeatResponse(known=known)
 
     @error_boundary

@@ -100,6 +100,9 @@ class LocalStack:
     heartbeat_interval_ms: int = 1000
     heartbeat_timeout_ms: int = 3000
     redis_url: str | None = None
+    #: Run the private redis-server with append-only persistence (as deploy/compose and
+    #: deploy/k8s do), so a Redis restart keeps the sessions.
+    redis_appendonly: bool = False
     #: Also run the critic service (harness registry + Evaluate) with a store in the workdir.
     critic: bool = True
     #: Pin each env worker to its own share of the CPUs (ZETTA_CPUS), unless the caller sets
@@ -146,12 +149,21 @@ class LocalStack:
             self.stop()
             raise
 
-    def _start_redis(self) -> None:
+    def restart_redis(self, sig: int = signal.SIGTERM) -> None:
+        """Stop the private redis-server with ``sig`` and start it again on the same port and data
+        directory (what it kept depends on ``redis_appendonly``)."""
+        assert self.redis_proc is not None, "the stack runs no redis-server of its own"
+        self.redis_proc.send_signal(sig)
+        self.redis_proc.wait(timeout=30)
+        self._start_redis(self.redis_port)
+
+    def _start_redis(self, port: int | None = None) -> None:
         assert self.workdir is not None
-        self.redis_port = free_port()
+        self.redis_port = port or free_port()
         log = self.workdir / "redis.log"
         self.redis_proc = subprocess.Popen(
-            [find_redis_server(), "--bind", HOST, "--port", str(self.redis_port), "--save", "", "--appendonly", "no",
+            [find_redis_server(), "--bind", HOST, "--port", str(self.redis_port), "--save", "",
+             "--appendonly", "yes" if self.redis_appendonly else "no",
              "--dir", str(self.workdir), "--logfile", str(log)],
             stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True,
         )
