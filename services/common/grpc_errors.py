@@ -38,6 +38,7 @@ class ServiceError(Exception):
         message: str,
         session_ids: Sequence[str] = (),
         retry_after_ms: int | None = None,
+        component: str = "",
     ) -> None:
         if len(message) > MAX_MESSAGE_CHARS:
             message = message[: MAX_MESSAGE_CHARS - 40] + f" ... (cut from {len(message)} characters)"
@@ -46,6 +47,8 @@ class ServiceError(Exception):
         self.message = message
         self.session_ids = list(session_ids)
         self.retry_after_ms = retry_after_ms
+        #: The service that failed when it is not the one answering (``zetta-failed-component``).
+        self.component = component
 
     def trailing_metadata(self) -> tuple[tuple[str, str], ...]:
         """Machine-readable details: failed sessions (bounded; ``zetta-failed-sessions-more`` counts
@@ -66,6 +69,8 @@ class ServiceError(Exception):
                 md.append(("zetta-failed-sessions-more", str(len(self.session_ids) - len(kept))))
         if self.retry_after_ms is not None:
             md.append(("retry-after-ms", str(self.retry_after_ms)))
+        if self.component:
+            md.append(("zetta-failed-component", self.component))
         return tuple(md)
 
     async def abort(self, context: grpc.aio.ServicerContext) -> None:
@@ -109,8 +114,14 @@ def store_unavailable(exc: BaseException) -> ServiceError:
     )
 
 
-def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
-    """Re-raise a downstream error with context, keeping its code and failed sessions."""
+def failed_component(err: grpc.aio.AioRpcError) -> str:
+    """The component a peer's error blames (``zetta-failed-component``); "" when the peer itself failed."""
+    return next((v for k, v in err.trailing_metadata() or () if k == "zetta-failed-component"), "")
+
+
+def from_rpc_error(err: grpc.aio.AioRpcError, what: str, component: str = "") -> ServiceError:
+    """Re-raise a downstream error with context, keeping its code, failed sessions and the failed
+    component (the peer's own, else ``component``)."""
     sessions: list[str] = []
     retry: int | None = None
     for key, value in err.trailing_metadata() or ():
@@ -118,7 +129,8 @@ def from_rpc_error(err: grpc.aio.AioRpcError, what: str) -> ServiceError:
             sessions = [s for s in value.split(",") if s]
         elif key == "retry-after-ms":
             retry = int(value)
-    return ServiceError(err.code(), f"{what}: {err.details()}", sessions, retry)
+    return ServiceError(err.code(), f"{what}: {err.details()}", sessions, retry,
+                        failed_component(err) or component)
 
 
 def error_boundary(method):  # type: ignore[no-untyped-def]

@@ -95,7 +95,7 @@ class PolicyClient:
         try:
             wanted = await self.model_inputs(model)
         except grpc.aio.AioRpcError as err:
-            raise ge.from_rpc_error(err, "policy worker") from None
+            raise ge.from_rpc_error(err, "policy worker", component="policy worker") from None
         item = policy_worker_pb2.InferItem(
             token=token, model=model, instruction=instruction, timeout_ms=timeout_ms or self._default_timeout_ms
         )
@@ -154,7 +154,7 @@ class PolicyClient:
             resp = await stub.Infer(policy_worker_pb2.InferRequest(items=[p.item for p in batch]), timeout=budget)
         except grpc.aio.AioRpcError as err:
             metrics.POLICY_ERRORS.labels(err.code().name).inc()
-            error = ge.from_rpc_error(err, "policy worker")
+            error = ge.from_rpc_error(err, "policy worker", component="policy worker")
             for p in batch:
                 if not p.future.done():
                     p.future.set_exception(error)

@@ -112,7 +112,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 return await call(stubs[worker], idx)
             except grpc.aio.AioRpcError as err:
                 ids = [records[i].session_id for i in idx]
-                if err.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
+                if err.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED) and not ge.failed_component(err):
                     raise ge.unavailable(
                         f"env worker {worker} is unreachable ({err.details()}); its sessions become LOST if it "
                         f"does not heartbeat within {self.cfg.heartbeat_timeout_ms} ms",
