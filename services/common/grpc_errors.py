@@ -181,3 +181,13 @@ def timed_unary(service: str, method: str, on_code=None):  # type: ignore[no-unt
         return error_boundary(wrapper)
 
     return deco
+
+
+def unauthenticated(message: str) -> ServiceError:
+    """UNAUTHENTICATED: no credential, or one nobody issued."""
+    return ServiceError(grpc.StatusCode.UNAUTHENTICATED, message)
+
+
+def permission_denied(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
+    """PERMISSION_DENIED: a known caller asking for what is not theirs."""
+    return ServiceError(grpc.StatusCode.PERMISSION_DENIED, message, session_ids)

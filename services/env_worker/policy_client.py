@@ -29,6 +29,7 @@ import numpy as np
 from services.common import grpc_errors as ge
 from services.common.metrics import HOP_LATENCY
 from services.common.server import CHANNEL_OPTIONS
+from services.common.tls import aio_channel
 from services.env_worker import metrics
 from zetta.codec import encode
 from zetta.v1 import policy_worker_pb2, policy_worker_pb2_grpc
@@ -61,7 +62,7 @@ class PolicyClient:
         # round_robin spreads calls over every address a name resolves to (dns:///policy:50071 in
         # Kubernetes), so policy pods added by the autoscaler take load from existing env workers.
         options = [*CHANNEL_OPTIONS, ("grpc.lb_policy_name", "round_robin")]
-        self._channels = [grpc.aio.insecure_channel(a, options=options) for a in addresses]
+        self._channels = [aio_channel(a, options) for a in addresses]
         self._stubs = [policy_worker_pb2_grpc.PolicyWorkerServiceStub(c) for c in self._channels]
         self._rr = itertools.cycle(range(len(self._stubs))) if self._stubs else None
         self._pending: list[_Pending] = []

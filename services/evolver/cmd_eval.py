@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from services.common.tls import sync_channel
 from services.evolver.cmd_evolve import add_run_args, run_config, tasks_of
 from services.evolver.evolve import evaluate_transfer
 from services.evolver.report import write_report
@@ -72,7 +73,7 @@ def _publish_dir(registry: str, path: Path) -> str:
     from services.critic.package.format import read_tree
     from zetta.v1 import critic_pb2, critic_pb2_grpc
 
-    with grpc.insecure_channel(registry) as ch:
+    with sync_channel(registry) as ch:
         files = {k: v for k, v in read_tree(path).items() if k != "manifest.json"}
         m = critic_pb2_grpc.HarnessRegistryServiceStub(ch).Publish(critic_pb2.PublishRequest(files=files), timeout=30)
     return f"{m.manifest.name}@{m.manifest.version}"

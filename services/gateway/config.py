@@ -23,6 +23,7 @@ class GatewayConfig:
     max_lease_seconds: int
     max_sessions_per_call: int
     max_request_bytes: int
+    auth_tokens_file: str
     tombstone_seconds: int
     retry_after_ms: int
     create_timeout_ms: int
@@ -50,6 +51,7 @@ class GatewayConfig:
             max_sessions_per_call=env.int("ZETTA_MAX_SESSIONS_PER_CALL", 1024, minimum=1, maximum=100_000),
             max_request_bytes=env.int("ZETTA_MAX_REQUEST_BYTES", 16 * 1024 * 1024, minimum=64 * 1024,
                                       maximum=1024 * 1024 * 1024),
+            auth_tokens_file=env.str("ZETTA_AUTH_TOKENS_FILE", ""),
             tombstone_seconds=env.int("ZETTA_TOMBSTONE_SECONDS", 3600, minimum=1),
             retry_after_ms=env.int("ZETTA_RETRY_AFTER_MS", 2000, minimum=1),
             create_timeout_ms=env.int("ZETTA_CREATE_TIMEOUT_MS", 300_000, minimum=100),

@@ -10,7 +10,7 @@ Keys (``P`` is the prefix):
   P:worker:<id>              hash: address, families, slots, free, alive, last_hb_ms
   P:hb:<id>                  string with a TTL; its existence is the heartbeat
   P:worker:<id>:sessions     set of live session ids on the worker
-  P:session:<sid>            hash: family, config, worker, state, lease_ms, expires_ms, reason,
+  P:session:<sid>            hash: family, config, worker, owner, state, lease_ms, expires_ms, reason,
                              action_dtype, action_shape, action_bounds ("low,high", either
                              part empty when unbounded), schema (serialized specs)
   P:leases                   sorted set: live session id -> lease expiry (ms)
@@ -35,7 +35,7 @@ LIVE_STATES = (CREATE, RUNNING)
 
 _ALLOCATE = """
 -- KEYS: none (keys are derived from the prefix; one Redis, not a cluster)
--- ARGV: prefix, family, count, now_ms, lease_ms, config_json, hold_ms, sid1..sidN
+-- ARGV: prefix, family, count, now_ms, lease_ms, config_json, hold_ms, owner, sid1..sidN
 -- (hold_ms: extra time for building the environments; the lease proper starts at activation)
 local p = ARGV[1]
 local family = ARGV[2]
@@ -44,6 +44,7 @@ local now = tonumber(ARGV[4])
 local lease = tonumber(ARGV[5])
 local config = ARGV[6]
 local hold = tonumber(ARGV[7])
+local owner = ARGV[8]
 local workers = redis.call('SMEMBERS', p .. ':workers')
 local free = {}
 local ids = {}
@@ -82,9 +83,10 @@ for i = 1, count do
   end
   free[best] = free[best] - 1
   redis.call('HINCRBY', p .. ':worker:' .. best, 'free', -1)
-  local sid = ARGV[7 + i]
+  local sid = ARGV[8 + i]
   redis.call('HSET', p .. ':session:' .. sid, 'family', family, 'config', config, 'worker', best,
-    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease + hold, 'created_ms', now, 'reason', '')
+    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease + hold, 'created_ms', now, 'reason', '',
+    'owner', owner)
   redis.call('SADD', p .. ':worker:' .. best .. ':sessions', sid)
   redis.call('ZADD', p .. ':leases', now + lease + hold, sid)
   table.insert(out, sid)
@@ -251,6 +253,8 @@ class SessionRecord:
     #: Lowest and highest value of every action element (from the action spec); None: unbounded.
     action_low: float | None = None
     action_high: float | None = None
+    #: Identity that created the session ("" when auth was off).
+    owner: str = ""
 
 
 @dataclass(frozen=True)
@@ -269,7 +273,7 @@ class WorkerRecord:
 class Registry:
     """Typed access to the registry keys; every multi-key change is one Lua script."""
 
-    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms", "action_bounds")
+    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms", "action_bounds", "owner")
 
     def __init__(self, client: aioredis.Redis, prefix: str, tombstone_seconds: int) -> None:
         self.r = client
@@ -304,7 +308,7 @@ class Registry:
                 "without persistence, or its data was flushed)")
 
     async def allocate(
-        self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0
+        self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0, owner: str = ""
     ) -> list[tuple[str, str]]:
         """Reserve ``count`` slots, all or none; returns (session id, worker id) pairs.
 
@@ -312,7 +316,7 @@ class Registry:
         """
         sids = [uuid.uuid4().hex for _ in range(count)]
         res = await self._allocate(
-            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), hold_ms, *sids]
+            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), hold_ms, owner, *sids]
         )
         status = _s(res[0])
         if status == "no_worker":
@@ -352,7 +356,7 @@ class Registry:
             if row[0] is None:
                 out.append(None)
                 continue
-            state, worker, family, reason, adtype, ashape, expires, bounds = (
+            state, worker, family, reason, adtype, ashape, expires, bounds, owner = (
                 _s(v) if v is not None else "" for v in row)
             low, _, high = bounds.partition(",")
             out.append(
@@ -367,6 +371,7 @@ class Registry:
                     expires_ms=int(expires or 0),
                     action_low=float(low) if low else None,
                     action_high=float(high) if high else None,
+                    owner=owner,
                 )
             )
         return out

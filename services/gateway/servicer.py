@@ -8,6 +8,7 @@ concurrently and their results are put back in request order.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections.abc import Awaitable, Callable, Sequence
@@ -23,6 +24,7 @@ from services.common.metrics import HOP_LATENCY
 from zetta.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
 from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
+from services.gateway.auth import CALLER, Authenticator
 from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
@@ -50,17 +52,30 @@ _STATE_ENUM = {
 
 
 def _timed(method: str):  # type: ignore[no-untyped-def]
-    """Gateway hop latency and status code of every call (grpc_errors.timed_unary)."""
-    return timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
+    """Gateway hop latency and status code of every call (grpc_errors.timed_unary), after the
+    caller is authenticated (auth.CALLER holds it for the call)."""
+    timed = timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
+
+    def deco(fn):  # type: ignore[no-untyped-def]
+        @functools.wraps(fn)
+        async def authenticated(self, request, context):  # type: ignore[no-untyped-def]
+            self.auth.client(context)
+            return await fn(self, request, context)
+
+        return timed(authenticated)
+
+    return deco
 
 
 class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     """The public API; all state is in the registry, so any number of these can run."""
 
-    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig,
+                 auth: Authenticator | None = None) -> None:
         self.registry = registry
         self.pool = pool
         self.cfg = config
+        self.auth = auth or Authenticator()
 
     # ---- validation and routing -------------------------------------------------------------
 
@@ -72,6 +87,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         if unknown:
             raise await self._unknown(unknown)
         recs = [r for r in records if r is not None]
+        self._check_owner(recs)
         for state, make in (
             (LOST, lambda ids, why: ge.failed_precondition(
                 f"session(s) {name_ids(ids)} LOST ({why}); create new sessions to continue", ids)),
@@ -83,6 +99,16 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
             if bad:
                 raise make([r.session_id for r in bad], bad[0].reason or state.lower())
         return recs
+
+    @staticmethod
+    def _check_owner(records: Sequence[SessionRecord]) -> None:
+        """PERMISSION_DENIED for sessions another identity created."""
+        caller = CALLER.get()
+        foreign = [r.session_id for r in records if not caller.owns(r.owner)]
+        if foreign:
+            raise ge.permission_denied(
+                f"session(s) {name_ids(foreign)} belong to another identity; {caller.name!r} may only use the "
+                "sessions it created", foreign)
 
     async def _unknown(self, unknown: list[str]) -> ServiceError:
         """NOT_FOUND for ids the registry does not hold; LOST when the registry itself lost its state."""
@@ -160,7 +186,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         config = json_format.MessageToDict(request.env_config)
         try:
             allocated = await self.registry.allocate(family, request.count, lease_ms, config,
-                                                     hold_ms=self.cfg.create_timeout_ms)
+                                                     hold_ms=self.cfg.create_timeout_ms, owner=CALLER.get().name)
         except NoWorkerError:
             hosted = sorted({f for w in await self.registry.workers() if w.alive for f in w.families})
             metrics.REJECTED.labels(family, "unknown_family").inc()
@@ -255,8 +281,11 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
     @_timed("CloseSessions")
     async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:  # noqa: N802
-        check_session_ids(list(dict.fromkeys(request.session_ids)), self.cfg.max_sessions_per_call)
-        closed, already = await self.close_sessions(list(dict.fromkeys(request.session_ids)), "closed by client")
+        sids = list(dict.fromkeys(request.session_ids))
+        if sids:
+            check_session_ids(sids, self.cfg.max_sessions_per_call)
+            self._check_owner([r for r in await self.registry.lookup(sids) if r is not None])
+        closed, already = await self.close_sessions(sids, "closed by client")
         return gateway_pb2.CloseSessionsResponse(closed_session_ids=closed, already_closed_session_ids=already)
 
     async def close_sessions(self, sids: Sequence[str], reason: str) -> tuple[list[str], list[str]]:
@@ -398,6 +427,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         bound = ""
         hist = HOP_LATENCY.labels("gateway", "StepStream")
         try:
+            self.auth.client(context)
             async for req in request_iterator:
                 start = time.perf_counter()
                 sid = req.session_id or bound
@@ -453,10 +483,11 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     @_timed("ListSessions")
     async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:  # noqa: N802
         wanted = set(request.states)
+        caller = CALLER.get()
         sids = await self.registry.all_session_ids()
         out = []
         for sid, h in zip(sids, await self.registry.session_hashes(sids)):
-            if not h:
+            if not h or not caller.owns(h.get("owner", b"").decode()):
                 continue
             text = {k: v.decode() for k, v in h.items() if k != "schema"}
             state = _STATE_ENUM.get(text.get("state", ""), types_pb2.SESSION_STATE_UNSPECIFIED)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -24,6 +25,7 @@ import numpy as np
 from google.protobuf import struct_pb2
 
 from zetta.codec import decode, decode_observation, encode
+from zetta.credentials import gateway_channel
 from zetta.v1 import gateway_pb2, gateway_pb2_grpc, types_pb2
 
 _CHANNEL_OPTIONS = [
@@ -241,9 +243,12 @@ def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0,
 class Gateway:
     """A connection to the gateway; one channel, reused by every call and session."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, token: str | None = None, tls_ca: str | bytes | Path | None = None,
+                 client_cert: str | bytes | Path | None = None, client_key: str | bytes | Path | None = None) -> None:
+        """``token``: the bearer token of a gateway with auth on; ``tls_ca``: the CA (PEM file or
+        bytes) of a gateway serving TLS (docs/security.md)."""
         self.address = address
-        self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._channel = gateway_channel(address, _CHANNEL_OPTIONS, token, tls_ca, client_cert, client_key)
         self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
         self._batcher = _Batcher(self)
 

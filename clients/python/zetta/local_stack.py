@@ -25,6 +25,7 @@ import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from services.common.cpus import allowed_cpus, format_cpu_list, split_cpus, usable_cpus
+from services.common.tls import channel_credentials, read_tls
 
 HOST = "127.0.0.1"
 
@@ -51,10 +52,17 @@ def find_redis_server() -> str:
     raise RuntimeError("redis-server is not installed: install it (apt-get install redis-server, brew install redis)")
 
 
-def wait_healthy(address: str, timeout: float, proc: subprocess.Popen[bytes] | None = None, log: Path | None = None) -> None:
+def _channel(address: str, credentials: grpc.ChannelCredentials | None) -> grpc.Channel:
+    if credentials is None:
+        return grpc.insecure_channel(address)
+    return grpc.secure_channel(address, credentials)
+
+
+def wait_healthy(address: str, timeout: float, proc: subprocess.Popen[bytes] | None = None, log: Path | None = None,
+                 credentials: grpc.ChannelCredentials | None = None) -> None:
     """Block until the gRPC health check of ``address`` answers SERVING."""
     deadline = time.monotonic() + timeout
-    with grpc.insecure_channel(address) as channel:
+    with _channel(address, credentials) as channel:
         stub = health_pb2_grpc.HealthStub(channel)
         while time.monotonic() < deadline:
             if proc is not None and proc.poll() is not None:
@@ -105,6 +113,9 @@ class LocalStack:
     redis_appendonly: bool = False
     #: Also run the critic service (harness registry + Evaluate) with a store in the workdir.
     critic: bool = True
+    #: Token the stack presents for its own gateway calls (ListWorkers) when the gateway has auth
+    #: on (ZETTA_AUTH_TOKENS_FILE in ``extra_env``).
+    client_token: str | None = None
     #: Pin each env worker to its own share of the CPUs (ZETTA_CPUS), unless the caller sets
     #: ZETTA_CPUS or a CPU quota is tighter than the CPUs (docs/throughput.md: +4 % steps/s on 2 cores).
     pin_env_workers: bool = True
@@ -179,6 +190,11 @@ class LocalStack:
                 time.sleep(0.05)
         raise RuntimeError(f"redis-server did not start on port {self.redis_port}; see {log}")
 
+    def _credentials(self) -> grpc.ChannelCredentials | None:
+        """Mutual-TLS credentials from the services' ZETTA_TLS_* settings; None without TLS."""
+        tls = read_tls(self._base_env())
+        return None if tls is None else channel_credentials(tls)
+
     def _base_env(self) -> dict[str, str]:
         env = dict(os.environ)
         root = Path(__file__).resolve().parents[3]
@@ -201,7 +217,7 @@ class LocalStack:
                                     start_new_session=True)
         svc = Service(name, f"{HOST}:{port}", metrics_port, proc, log, env)
         self.services[name] = svc
-        wait_healthy(svc.address, timeout=120, proc=proc, log=log)
+        wait_healthy(svc.address, timeout=120, proc=proc, log=log, credentials=self._credentials())
         return svc
 
     def start_gateway(self, port: int | None = None) -> Service:
@@ -288,10 +304,11 @@ class LocalStack:
         from zetta.v1 import gateway_pb2, gateway_pb2_grpc
 
         deadline = time.monotonic() + timeout
-        with grpc.insecure_channel(self.gateway_address) as channel:
+        metadata = (("authorization", f"Bearer {self.client_token}"),) if self.client_token else ()
+        with _channel(self.gateway_address, self._credentials()) as channel:
             stub = gateway_pb2_grpc.GatewayServiceStub(channel)
             while time.monotonic() < deadline:
-                workers = stub.ListWorkers(gateway_pb2.ListWorkersRequest(), timeout=5).workers
+                workers = stub.ListWorkers(gateway_pb2.ListWorkersRequest(), timeout=5, metadata=metadata).workers
                 if sum(w.alive for w in workers) >= n:
                     return
                 time.sleep(0.1)
