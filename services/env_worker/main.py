@@ -10,6 +10,7 @@ from services.common.config import ConfigError
 from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
+from services.critic.runtime.budget import PlatformLimits
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.families.base import UnknownFamilyError, get_family
 from services.env_worker.membership import Membership
@@ -50,6 +51,7 @@ async def main() -> None:
     """Serve the slots, register with the gateway, heartbeat; on SIGTERM drain and deregister."""
     setup_logging("env_worker")
     cfg = EnvWorkerConfig.from_env()
+    PlatformLimits.from_env()  # the harness time limits fail fast here, not at the first reset
     # Before any family import: MuJoCo and robosuite read MUJOCO_GL when they are imported.
     select_gl_backend()
     log.info("rendering: %s; OpenGL renderer: %s", gl_backend_choice().describe(), _gl_renderer())

@@ -42,3 +42,18 @@ def test_ordinary_critic_code_passes() -> None:
         "    def step(self, window):\n        self._count += 1\n"
         "        v = np.asarray(window).copy()\n        return f'{self._count} {np.linalg.norm(v):.3f}'\n"
     ))
+
+
+def test_platform_limits_bound_what_a_package_asks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SKILL.md's critic_hard_limit_ms = 1e9 used to be honoured; the platform's limit wins now,
+    and a package asking for less keeps its own."""
+    from services.critic.runtime.engine import HarnessRuntime
+    from tests.unit.test_harness_runtime import package
+
+    greedy = HarnessRuntime(package({"runtime": {"critic_budget_ms": 1e9, "critic_hard_limit_ms": 1e9}}))
+    assert greedy.budget_s == 0.05 and greedy.hard_limit_s == 1.0
+    modest = HarnessRuntime(package({"runtime": {"critic_budget_ms": 1.0, "critic_hard_limit_ms": 10.0}}))
+    assert modest.budget_s == 0.001 and modest.hard_limit_s == 0.01
+    monkeypatch.setenv("ZETTA_CRITIC_MAX_BUDGET_MS", "2")
+    monkeypatch.setenv("ZETTA_CRITIC_MAX_HARD_LIMIT_MS", "5")
+    assert HarnessRuntime(package({"runtime": {"critic_budget_ms": 1.0}})).hard_limit_s == 0.005

@@ -34,7 +34,7 @@ import numpy as np
 
 from services.critic.package.model import LoadedPackage
 from services.critic.runtime.api import Frame, Proposal, Window
-from services.critic.runtime.budget import CallBudget, guarded_call
+from services.critic.runtime.budget import CallBudget, PlatformLimits, guarded_call
 from services.critic.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
 from services.critic.runtime.library.recoveries import DONE, FAILED, Chain
 from services.critic.runtime.library.schema import ParamError
@@ -237,6 +237,10 @@ class HarnessRuntime:
         if self.window_size < 1 or self.budget_s <= 0 or self.hard_limit_s < self.budget_s or self.cooldown < 0:
             raise HarnessError("[runtime]: window >= 1, cooldown >= 0 and 0 < critic_budget_ms <= critic_hard_limit_ms "
                                "are required")
+        # The platform's limits bound what the package asked for (it may ask for less, never more).
+        self.limits = PlatformLimits.from_env()
+        self.budget_s = min(self.budget_s, self.limits.budget_s)
+        self.hard_limit_s = min(self.hard_limit_s, self.limits.hard_limit_s)
         try:
             self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
         except (ValueError, ParamError) as exc:
@@ -275,7 +279,7 @@ class HarnessRuntime:
         self.instruction = instruction
         self.milestone_names = tuple(milestone_names)
         self.critics = [
-            Critic(n, fn, CallBudget(b if b is not None else self.budget_s, self.hard_limit_s))
+            Critic(n, fn, CallBudget(min(b, self.limits.budget_s) if b is not None else self.budget_s, self.hard_limit_s))
             for n, fn, b in self._critic_defs
         ]
         self._frames: deque[Frame] = deque(maxlen=self.window_size)
