@@ -68,8 +68,6 @@ def _run(a: argparse.Namespace, store: RolloutStore, bars: Bars) -> tuple[list[d
 
 def _publish_dir(registry: str, path: Path) -> str:
     """Publish a package directory (a harness from another stack) and return its reference."""
-    import grpc
-
     from services.critic.package.format import read_tree
     from zetta.v1 import critic_pb2, critic_pb2_grpc
 
