@@ -21,6 +21,7 @@ from grpc_health.v1._async import HealthServicer
 from grpc_reflection.v1alpha import reflection
 from prometheus_client import start_http_server
 
+from services.common.tls import read_tls, server_credentials
 from zetta_wire.channel import MAX_MESSAGE_BYTES
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,12 @@ class ServiceRunner:
     metrics_port: int
     registrations: Sequence[Registration]
     grace_seconds: float = 5.0
+    #: Largest request this server accepts; a bigger one is refused by gRPC (RESOURCE_EXHAUSTED)
+    #: before any handler runs.
+    max_receive_bytes: int = MAX_MESSAGE_BYTES
+    #: Whether this server requires client certificates when TLS is on (ZETTA_TLS_CLIENT_AUTH
+    #: overrides); every service but the gateway, whose clients present tokens instead.
+    client_auth_default: bool = True
     on_drain: Callable[[], Awaitable[None]] | None = None
     server: grpc.aio.Server = field(init=False)
     health: HealthServicer = field(init=False)
@@ -55,7 +62,7 @@ class ServiceRunner:
         self.server = grpc.aio.server(
             options=[
                 ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
-                ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+                ("grpc.max_receive_message_length", self.max_receive_bytes),
                 ("grpc.so_reuseport", 0),
                 ("grpc.keepalive_permit_without_calls", 1),
                 ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
@@ -68,7 +75,12 @@ class ServiceRunner:
             reg.add_to_server(reg.servicer, self.server)
             names.append(reg.service_name)
         reflection.enable_server_reflection(names, self.server)
-        self.bound_port = self.server.add_insecure_port(f"{self.host}:{self.port}")
+        tls = read_tls(client_auth_default=self.client_auth_default)
+        address = f"{self.host}:{self.port}"
+        if tls is None:
+            self.bound_port = self.server.add_insecure_port(address)
+        else:
+            self.bound_port = self.server.add_secure_port(address, server_credentials(tls))
         if self.bound_port == 0:
             raise RuntimeError(f"{self.name}: cannot bind {self.host}:{self.port}")
         if self.metrics_port >= 0:
@@ -79,7 +91,8 @@ class ServiceRunner:
             await self.health.set(reg.service_name, health_pb2.HealthCheckResponse.SERVING)
         log.info(
             "serving",
-            extra={"fields": {"grpc": f"{self.host}:{self.bound_port}", "metrics_port": self.metrics_port}},
+            extra={"fields": {"grpc": f"{self.host}:{self.bound_port}", "metrics_port": self.metrics_port,
+                              "tls": "off" if tls is None else ("mutual" if tls.client_auth else "server")}},
         )
 
     async def run_until_signalled(self) -> None:

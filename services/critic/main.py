@@ -13,6 +13,7 @@ import redis.asyncio as aioredis
 from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
+from services.harness.runtime.budget import PlatformLimits
 from services.critic.config import CriticConfig
 from services.harness.package.probe import start_fork_server
 from services.harness.package.store import PackageStore
@@ -25,6 +26,7 @@ async def main() -> None:
     """Open the store and Redis (fail fast if either is unusable), restore pointers, serve."""
     logger = setup_logging("critic")
     cfg = CriticConfig.from_env()
+    PlatformLimits.from_env()  # the harness time limits fail fast here, not at the first reset
     try:
         store = PackageStore(cfg.store)
         store.check_writable()

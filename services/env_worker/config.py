@@ -38,6 +38,9 @@ class EnvWorkerConfig:
     #: The critic service (ZETTA_CRITIC_ADDR, host:port) that resets naming a harness by registry
     #: reference load it from; empty: only harness_dir packages can run.
     critic_address: str = ""
+    #: Worker credential presented to the gateway's WorkerRegistryService (ZETTA_WORKER_TOKEN);
+    #: empty where the gateway runs without auth.
+    worker_token: str = ""
     #: How inference requests wait for each other to leave as one batch (ZETTA_INFER_HOLD_MS,
     #: ZETTA_INFER_HOLD_MIN_BUSY; services/env_worker/policy_client.py).
     infer_hold: InferHold = InferHold()
@@ -76,6 +79,7 @@ class EnvWorkerConfig:
             video_dir=_video_dir(env),
             resource_sharing=env.bool("ZETTA_RESOURCE_SHARING", True),
             critic_address=env.address("ZETTA_CRITIC_ADDR"),
+            worker_token=env.str("ZETTA_WORKER_TOKEN", ""),
             step_concurrency=env.int("ZETTA_STEP_CONCURRENCY", usable_cpus(mask=cpus), minimum=0),
             cpus=cpus,
             infer_hold=InferHold(

@@ -24,6 +24,7 @@ import grpc
 import numpy as np
 
 from services.common import grpc_errors as ge
+from services.common.tls import sync_channel
 from services.env_worker import metrics
 from services.harness.package import format as fmt
 from services.harness.package.errors import PackageRejected
@@ -108,7 +109,7 @@ class HarnessSource:
         from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
         if self._stub is None:
-            self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(grpc.insecure_channel(self.critic_address))
+            self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(sync_channel(self.critic_address))
         try:
             resp = self._stub.Get(critic_pb2.GetRequest(ref=ref), timeout=self.timeout_s)
         except grpc.RpcError as exc:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 
@@ -9,6 +10,7 @@ from services.common.config import ConfigError
 from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
+from services.harness.runtime.budget import PlatformLimits
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.families import UnknownFamilyError, get_family
 from services.env_worker.membership import Membership
@@ -22,7 +24,7 @@ log = logging.getLogger(__name__)
 
 
 def _warm_compiled(fast_step_kernel: bool) -> None:
-    """Compile (or load from numba's cache) the step path's kernels before sessions arrive: a
+    """Compile (or load from numba's cache) the step path's kernels before the worker serves: a
     compile holds the GIL, which on a slot's first step would stall the event loop and heartbeats.
     The geom box kernel serves every family's task tensors; the fast step's only libero and robosuite."""
     from services.env_worker.families import task_state
@@ -49,6 +51,7 @@ async def main() -> None:
     """Serve the slots, register with the gateway, heartbeat; on SIGTERM drain and deregister."""
     setup_logging("env_worker")
     cfg = EnvWorkerConfig.from_env()
+    PlatformLimits.from_env()  # the harness time limits fail fast here, not at the first reset
     # Before any family import: MuJoCo and robosuite read MUJOCO_GL when they are imported.
     select_gl_backend()
     log.info("rendering: %s; OpenGL renderer: %s", gl_backend_choice().describe(), _gl_renderer())
@@ -67,7 +70,8 @@ async def main() -> None:
         if reason:
             raise ConfigError(f"env worker: ZETTA_ENV_FAMILIES names {name!r}, which cannot run here: {reason}")
     fast_step_kernel = bool({"libero", "robosuite"} & set(cfg.families))  # their fast step path is compiled
-    threading.Thread(target=_warm_compiled, args=(fast_step_kernel,), name="kernel-warm-up", daemon=True).start()
+    warming = threading.Thread(target=_warm_compiled, args=(fast_step_kernel,), name="kernel-warm-up", daemon=True)
+    warming.start()
     table = SlotTable(cfg.slots, cfg.families, cfg.step_concurrency)
     policy = PolicyClient(cfg.policy_addresses, cfg.default_policy_timeout_ms, cfg.infer_hold,
                           busy=lambda: table.activity.busy)
@@ -96,6 +100,9 @@ async def main() -> None:
         grace_seconds=cfg.grace_seconds,
         on_drain=drain,
     )
+    # SERVING (and registration) only once the kernels are compiled: a session's first step must
+    # not wait for a compile (62.7 s with a cold numba cache on a busy node).
+    await asyncio.to_thread(warming.join)
     await runner.start()
     cfg = cfg.resolved(runner.bound_port)
     servicer.worker_id = cfg.worker_id

@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 
 import grpc
 
+from services.common.tls import aio_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
 from services.env_worker.config import EnvWorkerConfig
 from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
@@ -35,11 +36,12 @@ class Membership:
         self._drop_others = drop_others
         # Reconnect quickly after a gateway restart: gRPC's default backoff (1 s growing to 120 s)
         # would outlast the heartbeat timeout and get this worker's sessions declared LOST.
-        self._channel = grpc.aio.insecure_channel(
+        self._channel = aio_channel(
             config.gateway_address,
             options=[*CHANNEL_OPTIONS, ("grpc.initial_reconnect_backoff_ms", 100), ("grpc.max_reconnect_backoff_ms", 500)],
         )
         self._stub = registry_pb2_grpc.WorkerRegistryServiceStub(self._channel)
+        self._md = (("authorization", f"Bearer {config.worker_token}"),) if config.worker_token else ()
         self._interval_s = 1.0
         self._task: asyncio.Task[None] | None = None
 
@@ -57,8 +59,14 @@ class Membership:
                         session_ids=list(self._held()),
                     ),
                     timeout=5,
+                    metadata=self._md,
                 )
             except grpc.aio.AioRpcError as err:
+                if err.code() in (grpc.StatusCode.UNAUTHENTICATED, grpc.StatusCode.PERMISSION_DENIED):
+                    log.error("the gateway refused this worker's credential (ZETTA_WORKER_TOKEN); retrying",
+                              extra={"fields": {"gateway": self.cfg.gateway_address, "error": err.details()}})
+                    await asyncio.sleep(2.0)
+                    continue
                 log.warning(
                     "gateway not reachable, retrying",
                     extra={"fields": {"gateway": self.cfg.gateway_address, "error": err.code().name, "retry_s": delay}},
@@ -83,7 +91,8 @@ class Membership:
             await asyncio.sleep(self._interval_s)
             try:
                 resp = await self._stub.Heartbeat(
-                    registry_pb2.HeartbeatRequest(worker_id=self.cfg.worker_id), timeout=max(self._interval_s, 0.5)
+                    registry_pb2.HeartbeatRequest(worker_id=self.cfg.worker_id), timeout=max(self._interval_s, 0.5),
+                    metadata=self._md,
                 )
             except grpc.aio.AioRpcError as err:
                 log.warning("heartbeat failed", extra={"fields": {"error": err.code().name}})
@@ -103,7 +112,7 @@ class Membership:
         if deregister:
             try:
                 await self._stub.DeregisterWorker(
-                    registry_pb2.DeregisterWorkerRequest(worker_id=self.cfg.worker_id), timeout=2
+                    registry_pb2.DeregisterWorkerRequest(worker_id=self.cfg.worker_id), timeout=2, metadata=self._md
                 )
             except grpc.aio.AioRpcError as err:
                 log.warning("deregistration failed", extra={"fields": {"error": err.code().name}})

@@ -28,6 +28,7 @@ import numpy as np
 
 from services.common import grpc_errors as ge
 from services.common.metrics import HOP_LATENCY
+from services.common.tls import aio_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
 from services.env_worker import metrics
 from zetta_wire.codec import encode
@@ -61,7 +62,7 @@ class PolicyClient:
         # round_robin spreads calls over every address a name resolves to (dns:///policy:50071 in
         # Kubernetes), so policy pods added by the autoscaler take load from existing env workers.
         options = [*CHANNEL_OPTIONS, ("grpc.lb_policy_name", "round_robin")]
-        self._channels = [grpc.aio.insecure_channel(a, options=options) for a in addresses]
+        self._channels = [aio_channel(a, options) for a in addresses]
         self._stubs = [policy_worker_pb2_grpc.PolicyWorkerServiceStub(c) for c in self._channels]
         self._rr = itertools.cycle(range(len(self._stubs))) if self._stubs else None
         self._pending: list[_Pending] = []
@@ -95,7 +96,7 @@ class PolicyClient:
         try:
             wanted = await self.model_inputs(model)
         except grpc.aio.AioRpcError as err:
-            raise ge.from_rpc_error(err, "policy worker") from None
+            raise ge.from_rpc_error(err, "policy worker", component="policy worker") from None
         item = policy_worker_pb2.InferItem(
             token=token, model=model, instruction=instruction, timeout_ms=timeout_ms or self._default_timeout_ms
         )
@@ -154,7 +155,7 @@ class PolicyClient:
             resp = await stub.Infer(policy_worker_pb2.InferRequest(items=[p.item for p in batch]), timeout=budget)
         except grpc.aio.AioRpcError as err:
             metrics.POLICY_ERRORS.labels(err.code().name).inc()
-            error = ge.from_rpc_error(err, "policy worker")
+            error = ge.from_rpc_error(err, "policy worker", component="policy worker")
             for p in batch:
                 if not p.future.done():
                     p.future.set_exception(error)

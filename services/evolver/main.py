@@ -16,6 +16,7 @@ import grpc
 from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
+from services.common.tls import sync_channel
 from services.evolver.config import EvolverConfig
 from services.evolver.jobs import JobManager
 from services.evolver.servicer import EvolverServicer
@@ -25,7 +26,7 @@ from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 def _reachable(address: str, what: str, variable: str) -> None:
     """Fail fast when a dependency does not answer: a job would only fail later, less clearly."""
     try:
-        with grpc.insecure_channel(address) as ch:
+        with sync_channel(address) as ch:
             grpc.channel_ready_future(ch).result(timeout=10)
     except grpc.FutureTimeoutError:
         raise ConfigError(f"evolver: the {what} at {variable}={address} does not answer") from None

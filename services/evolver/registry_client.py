@@ -10,6 +10,7 @@ from typing import Any
 
 import grpc
 
+from services.common.tls import sync_channel
 from services.evolver.draft import HarnessDraft, render
 from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
@@ -22,7 +23,7 @@ class RegistryClient:
     """A channel to HarnessRegistryService."""
 
     def __init__(self, address: str) -> None:
-        self._channel = grpc.insecure_channel(address)
+        self._channel = sync_channel(address)
         self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(self._channel)
 
     def close(self) -> None:

@@ -22,6 +22,8 @@ class GatewayConfig:
     default_lease_seconds: int
     max_lease_seconds: int
     max_sessions_per_call: int
+    max_request_bytes: int
+    auth_tokens_file: str
     tombstone_seconds: int
     retry_after_ms: int
     create_timeout_ms: int
@@ -46,7 +48,10 @@ class GatewayConfig:
             heartbeat_timeout_ms=env.int("ZETTA_HEARTBEAT_TIMEOUT_MS", 3 * hb_interval, minimum=100),
             default_lease_seconds=env.int("ZETTA_DEFAULT_LEASE_SECONDS", 600, minimum=1),
             max_lease_seconds=env.int("ZETTA_MAX_LEASE_SECONDS", 86400, minimum=1),
-            max_sessions_per_call=env.int("ZETTA_MAX_SESSIONS_PER_CALL", 1024, minimum=1),
+            max_sessions_per_call=env.int("ZETTA_MAX_SESSIONS_PER_CALL", 1024, minimum=1, maximum=100_000),
+            max_request_bytes=env.int("ZETTA_MAX_REQUEST_BYTES", 16 * 1024 * 1024, minimum=64 * 1024,
+                                      maximum=1024 * 1024 * 1024),
+            auth_tokens_file=env.str("ZETTA_AUTH_TOKENS_FILE", ""),
             tombstone_seconds=env.int("ZETTA_TOMBSTONE_SECONDS", 3600, minimum=1),
             retry_after_ms=env.int("ZETTA_RETRY_AFTER_MS", 2000, minimum=1),
             create_timeout_ms=env.int("ZETTA_CREATE_TIMEOUT_MS", 300_000, minimum=100),

@@ -17,3 +17,9 @@ MISSED_HEARTBEATS = Counter(
 WORKERS_DEAD = Counter("zetta_gateway_workers_declared_dead_total", "Workers declared dead after missing heartbeats.")
 SESSIONS_LOST = Counter("zetta_gateway_sessions_lost_total", "Sessions marked LOST because their worker died.")
 LEASES_EXPIRED = Counter("zetta_gateway_leases_expired_total", "Sessions closed because their lease ran out.")
+BLIND = Counter(
+    "zetta_gateway_liveness_blind_total",
+    "Times the gateway suspended dead-worker detection for a heartbeat timeout because it could not "
+    "see heartbeats arrive (Redis error, slow Redis, event loop stall), by cause.",
+    ["cause"],
+)

@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
+
+from services.common.grpc_errors import STORE_ERRORS
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, now_ms
 from services.gateway.servicer import GatewayServicer
+from services.gateway.vantage import Vantage
 
 log = logging.getLogger(__name__)
 
@@ -22,16 +26,19 @@ GAUGE_PERIOD_S = 5.0
 class Monitor:
     """Runs the periodic checks until stopped."""
 
-    def __init__(self, registry: Registry, gateway: GatewayServicer, config: GatewayConfig) -> None:
+    def __init__(self, registry: Registry, gateway: GatewayServicer, config: GatewayConfig,
+                 vantage: Vantage | None = None) -> None:
         self.registry = registry
         self.gateway = gateway
         self.cfg = config
+        self.vantage = vantage or Vantage()
         self._task: asyncio.Task[None] | None = None
-        self._started_ms = now_ms()
 
     def start(self) -> None:
         """Start the loop in the background."""
-        self._started_ms = now_ms()
+        # Heartbeat keys also expire while no gateway runs to refresh them (a gateway restart):
+        # give every worker one full timeout after this gateway started before declaring it dead.
+        self.vantage.restart()
         self._task = asyncio.create_task(self._run())
 
     async def stop(self) -> None:
@@ -46,30 +53,46 @@ class Monitor:
     async def _run(self) -> None:
         last_gauges = 0.0
         loop = asyncio.get_running_loop()
+        interval_s = self.cfg.monitor_interval_ms / 1000
+        slack_s = self._slack_ms() / 1000
         while True:
+            woke = loop.time()
             try:
                 await self.check_workers()
                 await self.expire_leases()
                 if loop.time() - last_gauges >= GAUGE_PERIOD_S:
                     await self.update_gauges()
                     last_gauges = loop.time()
-            except Exception:  # a Redis hiccup must not end the monitor
+            except STORE_ERRORS as exc:
+                self.vantage.blind(f"redis: {type(exc).__name__}: {exc}")
+            except Exception:
                 log.exception("monitor tick failed")
-            await asyncio.sleep(self.cfg.monitor_interval_ms / 1000)
+            await asyncio.sleep(interval_s)
+            late = loop.time() - woke - interval_s
+            if late > slack_s:
+                self.vantage.blind(f"stall: the monitor ran {late:.2f} s late (event loop or Redis busy)")
+
+    def _slack_ms(self) -> int:
+        """How long the gateway may be stalled or Redis slow before a heartbeat sent on time could
+        have missed its key's expiry: the key lives a timeout and the worker writes it every interval."""
+        return self.cfg.heartbeat_timeout_ms - self.cfg.heartbeat_interval_ms
 
     async def check_workers(self) -> list[str]:
         """Declare workers without a heartbeat dead; returns the sessions that became LOST."""
         lost_all: list[str] = []
+        asked = time.monotonic()
+        workers = await self.registry.workers()
+        took_ms = (time.monotonic() - asked) * 1000
+        if took_ms > self._slack_ms():
+            self.vantage.blind(f"slow redis: reading the workers took {took_ms:.0f} ms")
+        judging = self.vantage.may_judge(self.cfg.heartbeat_timeout_ms)
         now = now_ms()
-        # Heartbeat keys also expire while no gateway runs to refresh them (a gateway restart):
-        # give every worker one full timeout after this gateway started before declaring it dead.
-        starting = now - self._started_ms < self.cfg.heartbeat_timeout_ms
-        for w in await self.registry.workers():
+        for w in workers:
             if w.alive:
                 if now - w.last_hb_ms > 1.5 * self.cfg.heartbeat_interval_ms:
                     metrics.MISSED_HEARTBEATS.labels(w.worker_id).inc()
                 continue
-            if starting:
+            if not judging:
                 continue
             lost = await self.registry.mark_dead(
                 w.worker_id,

@@ -10,9 +10,12 @@ Keys (``P`` is the prefix):
   P:worker:<id>              hash: address, families, slots, free, alive, last_hb_ms
   P:hb:<id>                  string with a TTL; its existence is the heartbeat
   P:worker:<id>:sessions     set of live session ids on the worker
-  P:session:<sid>            hash: family, config, worker, state, lease_ms, expires_ms, reason,
-                             action_dtype, action_shape, schema (serialized specs)
+  P:session:<sid>            hash: family, config, worker, owner, state, lease_ms, expires_ms, reason,
+                             action_dtype, action_shape, action_bounds ("low,high", either
+                             part empty when unbounded), schema (serialized specs)
   P:leases                   sorted set: live session id -> lease expiry (ms)
+  P:epoch                    random token written once per Redis data set; a gateway that sees it
+                             change or vanish knows Redis lost its state (restart without persistence)
 Closed and LOST session hashes stay for ``tombstone_seconds`` so that late calls get a clear
 status instead of "unknown session".
 """
@@ -32,7 +35,7 @@ LIVE_STATES = (CREATE, RUNNING)
 
 _ALLOCATE = """
 -- KEYS: none (keys are derived from the prefix; one Redis, not a cluster)
--- ARGV: prefix, family, count, now_ms, lease_ms, config_json, hold_ms, sid1..sidN
+-- ARGV: prefix, family, count, now_ms, lease_ms, config_json, hold_ms, owner, sid1..sidN
 -- (hold_ms: extra time for building the environments; the lease proper starts at activation)
 local p = ARGV[1]
 local family = ARGV[2]
@@ -41,6 +44,7 @@ local now = tonumber(ARGV[4])
 local lease = tonumber(ARGV[5])
 local config = ARGV[6]
 local hold = tonumber(ARGV[7])
+local owner = ARGV[8]
 local workers = redis.call('SMEMBERS', p .. ':workers')
 local free = {}
 local ids = {}
@@ -79,9 +83,10 @@ for i = 1, count do
   end
   free[best] = free[best] - 1
   redis.call('HINCRBY', p .. ':worker:' .. best, 'free', -1)
-  local sid = ARGV[7 + i]
+  local sid = ARGV[8 + i]
   redis.call('HSET', p .. ':session:' .. sid, 'family', family, 'config', config, 'worker', best,
-    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease + hold, 'created_ms', now, 'reason', '')
+    'state', 'CREATE', 'lease_ms', lease, 'expires_ms', now + lease + hold, 'created_ms', now, 'reason', '',
+    'owner', owner)
   redis.call('SADD', p .. ':worker:' .. best .. ':sessions', sid)
   redis.call('ZADD', p .. ':leases', now + lease + hold, sid)
   table.insert(out, sid)
@@ -132,13 +137,23 @@ return out
 """
 
 _REGISTER = """
--- ARGV: prefix, worker, address, families, slots, hb_ttl_ms, now_ms, reason, tombstone, held1..heldN
+-- ARGV: prefix, worker, address, families, slots, hb_ttl_ms, now_ms, reason, tombstone, forgotten_reason,
+--       held1..heldN
+-- A held session the registry has no record of at all was forgotten by Redis (a restart without
+-- persistence): it is recorded LOST with forgotten_reason instead of vanishing as "never created".
 local p = ARGV[1]
 local w = ARGV[2]
 local wk = p .. ':worker:' .. w
 local slots = tonumber(ARGV[5])
 local held = {}
-for i = 10, #ARGV do held[ARGV[i]] = true end
+for i = 11, #ARGV do
+  held[ARGV[i]] = true
+  local sk = p .. ':session:' .. ARGV[i]
+  if redis.call('EXISTS', sk) == 0 then
+    redis.call('HSET', sk, 'state', 'LOST', 'reason', ARGV[10], 'worker', w)
+    redis.call('EXPIRE', sk, tonumber(ARGV[9]))
+  end
+end
 local kept = {}
 local lost = {}
 if redis.call('HGET', wk, 'alive') == '1' then
@@ -189,15 +204,15 @@ return {1, tostring(expires)}
 """
 
 _ACTIVATE = """
--- ARGV: prefix, action_dtype, action_shape, schema, now_ms, sid1..sidN
+-- ARGV: prefix, action_dtype, action_shape, schema, now_ms, action_bounds, sid1..sidN
 -- The lease starts now: a build longer than the lease must not leave a born-expired session.
 local n = 0
-for i = 6, #ARGV do
+for i = 7, #ARGV do
   local sk = ARGV[1] .. ':session:' .. ARGV[i]
   if redis.call('HGET', sk, 'state') == 'CREATE' then
     local expires = tonumber(ARGV[5]) + tonumber(redis.call('HGET', sk, 'lease_ms'))
     redis.call('HSET', sk, 'state', 'RUNNING', 'action_dtype', ARGV[2], 'action_shape', ARGV[3],
-      'schema', ARGV[4], 'expires_ms', expires)
+      'schema', ARGV[4], 'expires_ms', expires, 'action_bounds', ARGV[6])
     redis.call('ZADD', ARGV[1] .. ':leases', expires, ARGV[i])
     n = n + 1
   end
@@ -235,6 +250,11 @@ class SessionRecord:
     action_dtype: str
     action_shape: tuple[int, ...]
     expires_ms: int
+    #: Lowest and highest value of every action element (from the action spec); None: unbounded.
+    action_low: float | None = None
+    action_high: float | None = None
+    #: Identity that created the session ("" when auth was off).
+    owner: str = ""
 
 
 @dataclass(frozen=True)
@@ -253,7 +273,7 @@ class WorkerRecord:
 class Registry:
     """Typed access to the registry keys; every multi-key change is one Lua script."""
 
-    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms")
+    _FIELDS = ("state", "worker", "family", "reason", "action_dtype", "action_shape", "expires_ms", "action_bounds", "owner")
 
     def __init__(self, client: aioredis.Redis, prefix: str, tombstone_seconds: int) -> None:
         self.r = client
@@ -266,9 +286,29 @@ class Registry:
         self._heartbeat = client.register_script(_HEARTBEAT)
         self._renew = client.register_script(_RENEW)
         self._activate = client.register_script(_ACTIVATE)
+        self._epoch: str | None = None
+
+    async def start_epoch(self) -> None:
+        """Remember the data set this gateway starts on (creating its epoch token if new)."""
+        key = f"{self.p}:epoch"
+        await self.r.set(key, uuid.uuid4().hex, nx=True)
+        self._epoch = _s(await self.r.get(key))
+
+    async def lost_state(self) -> str:
+        """Why sessions are missing when Redis lost its data since this gateway started; "" when it did not."""
+        if self._epoch is None:
+            return ""
+        key = f"{self.p}:epoch"
+        current = await self.r.get(key)
+        if current is None:
+            await self.r.set(key, uuid.uuid4().hex, nx=True)
+        if current is not None and _s(current) == self._epoch:
+            return ""
+        return ("the session registry (Redis) lost its state after this gateway started (Redis restarted "
+                "without persistence, or its data was flushed)")
 
     async def allocate(
-        self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0
+        self, family: str, count: int, lease_ms: int, config: dict, hold_ms: int = 0, owner: str = ""
     ) -> list[tuple[str, str]]:
         """Reserve ``count`` slots, all or none; returns (session id, worker id) pairs.
 
@@ -276,7 +316,7 @@ class Registry:
         """
         sids = [uuid.uuid4().hex for _ in range(count)]
         res = await self._allocate(
-            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), hold_ms, *sids]
+            args=[self.p, family, count, now_ms(), lease_ms, json.dumps(config, sort_keys=True), hold_ms, owner, *sids]
         )
         status = _s(res[0])
         if status == "no_worker":
@@ -285,11 +325,13 @@ class Registry:
             raise PoolFullError(int(res[1]))
         return [(_s(res[i]), _s(res[i + 1])) for i in range(1, len(res), 2)]
 
-    async def activate(self, sids: Sequence[str], action_dtype: str, action_shape: Sequence[int], schema: bytes) -> int:
+    async def activate(self, sids: Sequence[str], action_dtype: str, action_shape: Sequence[int], schema: bytes,
+                       bounds: tuple[float | None, float | None] = (None, None)) -> int:
         """CREATE -> RUNNING, storing what requests are validated against; the lease starts now."""
+        text = ",".join("" if b is None else repr(float(b)) for b in bounds)
         return int(
             await self._activate(
-                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, now_ms(), *sids]
+                args=[self.p, action_dtype, ",".join(str(d) for d in action_shape), schema, now_ms(), text, *sids]
             )
         )
 
@@ -314,7 +356,9 @@ class Registry:
             if row[0] is None:
                 out.append(None)
                 continue
-            state, worker, family, reason, adtype, ashape, expires = (_s(v) if v is not None else "" for v in row)
+            state, worker, family, reason, adtype, ashape, expires, bounds, owner = (
+                _s(v) if v is not None else "" for v in row)
+            low, _, high = bounds.partition(",")
             out.append(
                 SessionRecord(
                     session_id=sid,
@@ -325,6 +369,9 @@ class Registry:
                     action_dtype=adtype,
                     action_shape=tuple(int(d) for d in ashape.split(",") if d),
                     expires_ms=int(expires or 0),
+                    action_low=float(low) if low else None,
+                    action_high=float(high) if high else None,
+                    owner=owner,
                 )
             )
         return out
@@ -366,8 +413,11 @@ class Registry:
     ) -> list[str]:
         """(Re)register a worker; returns the held sessions it may keep."""
         reason = f"worker {worker_id} re-registered without this session"
+        forgotten = (f"the session registry (Redis) lost this session's record (restarted without persistence, "
+                     f"or flushed); worker {worker_id} still held it and dropped it")
         kept = await self._register(
-            args=[self.p, worker_id, address, ",".join(families), slots, hb_ttl_ms, now_ms(), reason, self.tombstone, *held]
+            args=[self.p, worker_id, address, ",".join(families), slots, hb_ttl_ms, now_ms(), reason, self.tombstone,
+                  forgotten, *held]
         )
         return [_s(k) for k in kept]
 

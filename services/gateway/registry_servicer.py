@@ -6,8 +6,10 @@ import logging
 
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import error_boundary
+from services.gateway.auth import Authenticator
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import Registry
+from services.gateway.vantage import Vantage
 from services.gateway.workers import WorkerPool
 from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
 
@@ -17,13 +19,17 @@ log = logging.getLogger(__name__)
 class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
     """Writes worker records and heartbeat keys; the monitor reads them."""
 
-    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig,
+                 vantage: Vantage | None = None, auth: Authenticator | None = None) -> None:
         self.registry = registry
         self.pool = pool
         self.cfg = config
+        self.vantage = vantage or Vantage()
+        self.auth = auth or Authenticator()
 
     @error_boundary
     async def RegisterWorker(self, request, context) -> registry_pb2.RegisterWorkerResponse:
+        self.auth.worker(context)
         if not request.worker_id or not request.address:
             raise ge.invalid("worker_id and address are required")
         if request.slots < 1:
@@ -48,11 +54,17 @@ class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
 
     @error_boundary
     async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:
-        known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+        self.auth.worker(context)
+        try:
+            known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+        except ge.STORE_ERRORS as exc:
+            self.vantage.blind(f"redis: a heartbeat of {request.worker_id} could not be written: {exc}")
+            raise
         return registry_pb2.HeartbeatResponse(known=known)
 
     @error_boundary
     async def DeregisterWorker(self, request, context) -> registry_pb2.DeregisterWorkerResponse:
+        self.auth.worker(context)
         lost = await self.registry.deregister(request.worker_id)
         log.info("worker deregistered", extra={"fields": {"worker": request.worker_id, "lost_sessions": len(lost)}})
         return registry_pb2.DeregisterWorkerResponse()

@@ -8,6 +8,7 @@ concurrently and their results are put back in request order.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections.abc import Awaitable, Callable, Sequence
@@ -22,6 +23,9 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
+from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
+from services.gateway.auth import CALLER, Authenticator
+from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import (
     CREATE,
@@ -45,52 +49,78 @@ _STATE_ENUM = {
     TERMINATED: types_pb2.SESSION_STATE_TERMINATED,
     LOST: types_pb2.SESSION_STATE_LOST,
 }
-#: Most actions one ActionStep may execute per session (a chunk).
-MAX_CHUNK = 256
 
 
-def _timed(method: str):
-    """Gateway hop latency and status code of every call (grpc_errors.timed_unary)."""
-    return timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
+def _timed(method: str):  # type: ignore[no-untyped-def]
+    """Gateway hop latency and status code of every call (grpc_errors.timed_unary), after the
+    caller is authenticated (auth.CALLER holds it for the call)."""
+    timed = timed_unary("gateway", method, lambda m, code: metrics.REQUESTS.labels(m, code).inc())
+
+    def deco(fn):  # type: ignore[no-untyped-def]
+        @functools.wraps(fn)
+        async def authenticated(self, request, context):  # type: ignore[no-untyped-def]
+            self.auth.client(context)
+            return await fn(self, request, context)
+
+        return timed(authenticated)
+
+    return deco
 
 
 class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     """The public API; all state is in the registry, so any number of these can run."""
 
-    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig) -> None:
+    def __init__(self, registry: Registry, pool: WorkerPool, config: GatewayConfig,
+                 auth: Authenticator | None = None) -> None:
         self.registry = registry
         self.pool = pool
         self.cfg = config
+        self.auth = auth or Authenticator()
 
     # ---- validation and routing -------------------------------------------------------------
 
     async def _resolve(self, sids: Sequence[str]) -> list[SessionRecord]:
         """Records of a batch of RUNNING sessions, or the error that names the bad ones."""
-        if not sids:
-            raise ge.invalid("session_ids is empty; pass the ids returned by CreateSessions")
-        if len(set(sids)) != len(sids):
-            dups = sorted({s for s in sids if sids.count(s) > 1})
-            raise ge.invalid(f"session ids appear more than once in one call: {', '.join(dups)}", dups)
+        check_session_ids(sids, self.cfg.max_sessions_per_call)
         records = await self.registry.lookup(sids)
         unknown = [sid for sid, rec in zip(sids, records) if rec is None]
         if unknown:
-            raise ge.not_found(
-                f"unknown session(s) {', '.join(unknown)}: never created, or closed more than "
-                f"{self.cfg.tombstone_seconds} s ago",
-                unknown,
-            )
+            raise await self._unknown(unknown)
         recs = [r for r in records if r is not None]
+        self._check_owner(recs)
         for state, make in (
             (LOST, lambda ids, why: ge.failed_precondition(
-                f"session(s) {', '.join(ids)} LOST ({why}); create new sessions to continue", ids)),
-            (TERMINATED, lambda ids, why: ge.not_found(f"session(s) {', '.join(ids)} closed ({why})", ids)),
+                f"session(s) {name_ids(ids)} LOST ({why}); create new sessions to continue", ids)),
+            (TERMINATED, lambda ids, why: ge.not_found(f"session(s) {name_ids(ids)} closed ({why})", ids)),
             (CREATE, lambda ids, why: ge.failed_precondition(
-                f"session(s) {', '.join(ids)} are still being created; retry when CreateSessions returns", ids)),
+                f"session(s) {name_ids(ids)} are still being created; retry when CreateSessions returns", ids)),
         ):
             bad = [r for r in recs if r.state == state]
             if bad:
                 raise make([r.session_id for r in bad], bad[0].reason or state.lower())
         return recs
+
+    @staticmethod
+    def _check_owner(records: Sequence[SessionRecord]) -> None:
+        """PERMISSION_DENIED for sessions another identity created."""
+        caller = CALLER.get()
+        foreign = [r.session_id for r in records if not caller.owns(r.owner)]
+        if foreign:
+            raise ge.permission_denied(
+                f"session(s) {name_ids(foreign)} belong to another identity; {caller.name!r} may only use the "
+                "sessions it created", foreign)
+
+    async def _unknown(self, unknown: list[str]) -> ServiceError:
+        """NOT_FOUND for ids the registry does not hold; LOST when the registry itself lost its state."""
+        lost_state = await self.registry.lost_state()
+        if lost_state:
+            return ge.failed_precondition(
+                f"session(s) {name_ids(unknown)} LOST: {lost_state}; create new sessions to continue", unknown)
+        return ge.not_found(
+            f"unknown session(s) {name_ids(unknown)}: never created, or closed more than "
+            f"{self.cfg.tombstone_seconds} s ago",
+            unknown,
+        )
 
     async def _fan_out(
         self,
@@ -108,7 +138,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 return await call(stubs[worker], idx)
             except grpc.aio.AioRpcError as err:
                 ids = [records[i].session_id for i in idx]
-                if err.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
+                if err.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED) and not ge.failed_component(err):
                     raise ge.unavailable(
                         f"env worker {worker} is unreachable ({err.details()}); its sessions become LOST if it "
                         f"does not heartbeat within {self.cfg.heartbeat_timeout_ms} ms",
@@ -156,7 +186,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         config = json_format.MessageToDict(request.env_config)
         try:
             allocated = await self.registry.allocate(family, request.count, lease_ms, config,
-                                                     hold_ms=self.cfg.create_timeout_ms)
+                                                     hold_ms=self.cfg.create_timeout_ms, owner=CALLER.get().name)
         except NoWorkerError:
             hosted = sorted({f for w in await self.registry.workers() if w.alive for f in w.families})
             metrics.REJECTED.labels(family, "unknown_family").inc()
@@ -195,6 +225,8 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 str(dtype_from_wire(opened.action_spec.dtype).newbyteorder("=")),
                 list(opened.action_spec.shape),
                 opened.SerializeToString(),
+                (opened.action_spec.low if opened.action_spec.HasField("low") else None,
+                 opened.action_spec.high if opened.action_spec.HasField("high") else None),
             )
             for sid in sids:
                 info = types_pb2.SessionInfo(
@@ -249,7 +281,11 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
 
     @_timed("CloseSessions")
     async def CloseSessions(self, request, context) -> gateway_pb2.CloseSessionsResponse:
-        closed, already = await self.close_sessions(list(dict.fromkeys(request.session_ids)), "closed by client")
+        sids = list(dict.fromkeys(request.session_ids))
+        if sids:
+            check_session_ids(sids, self.cfg.max_sessions_per_call)
+            self._check_owner([r for r in await self.registry.lookup(sids) if r is not None])
+        closed, already = await self.close_sessions(sids, "closed by client")
         return gateway_pb2.CloseSessionsResponse(closed_session_ids=closed, already_closed_session_ids=already)
 
     async def close_sessions(self, sids: Sequence[str], reason: str) -> tuple[list[str], list[str]]:
@@ -325,6 +361,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                     f"action of session {rec.session_id}: {len(action.data)} bytes do not match shape {list(shape)}",
                     [rec.session_id],
                 )
+            check_action_values(rec, np.frombuffer(action.data, dtype).reshape(shape))
 
     @_timed("ActionStep")
     async def ActionStep(self, request, context) -> gateway_pb2.ActionStepResponse:
@@ -345,6 +382,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def PolicyStep(self, request, context) -> gateway_pb2.PolicyStepResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
 
         async def call(stub, idx: list[int]):
             req = env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
@@ -356,6 +394,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def PolicyInfer(self, request, context) -> gateway_pb2.PolicyInferResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
 
         async def call(stub, idx: list[int]):
             req = env_worker_pb2.InferSlotsRequest(session_ids=[sids[i] for i in idx], policy=request.policy)
@@ -367,6 +406,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     async def RunEpisode(self, request, context) -> gateway_pb2.RunEpisodeResponse:
         sids = list(request.session_ids)
         records = await self._resolve(sids)
+        check_policy_spec(request.policy)
         specs = self._specs_for(len(sids), request.specs, "specs") if request.specs else []
         if request.max_steps < 0:
             raise ge.invalid(f"max_steps must be >= 0, got {request.max_steps}")
@@ -387,6 +427,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         bound = ""
         hist = HOP_LATENCY.labels("gateway", "StepStream")
         try:
+            self.auth.client(context)
             async for req in request_iterator:
                 start = time.perf_counter()
                 sid = req.session_id or bound
@@ -413,6 +454,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                         )
                         yield gateway_pb2.StepStreamResponse(step=res.results[0])
                     elif op == "policy":
+                        check_policy_spec(req.policy)
                         res = await stub.PolicyStepSlots(
                             env_worker_pb2.PolicyStepSlotsRequest(session_ids=[sid], policy=req.policy),
                             timeout=self._timeout(self.cfg.step_timeout_ms),
@@ -429,6 +471,9 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 except grpc.aio.AioRpcError as err:
                     raise ge.from_rpc_error(err, f"env worker {records[0].worker_id}") from None
                 hist.observe(time.perf_counter() - start)
+        except ge.STORE_ERRORS as exc:
+            metrics.REQUESTS.labels("StepStream", "UNAVAILABLE").inc()
+            await ge.store_unavailable(exc).abort(context)
         except ServiceError as exc:
             metrics.REQUESTS.labels("StepStream", exc.code.name).inc()
             await exc.abort(context)
@@ -438,10 +483,11 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
     @_timed("ListSessions")
     async def ListSessions(self, request, context) -> gateway_pb2.ListSessionsResponse:
         wanted = set(request.states)
+        caller = CALLER.get()
         sids = await self.registry.all_session_ids()
         out = []
         for sid, h in zip(sids, await self.registry.session_hashes(sids)):
-            if not h:
+            if not h or not caller.owns(h.get("owner", b"").decode()):
                 continue
             text = {k: v.decode() for k, v in h.items() if k != "schema"}
             state = _STATE_ENUM.get(text.get("state", ""), types_pb2.SESSION_STATE_UNSPECIFIED)

@@ -7,6 +7,7 @@ import asyncio
 import grpc
 
 from services.common import grpc_errors as ge
+from services.common.tls import aio_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
 from services.gateway.registry import Registry
 from zetta_wire.v1 import env_worker_pb2_grpc
@@ -35,7 +36,7 @@ class WorkerPool:
             return self._connect(worker_id, address.decode())
 
     def _connect(self, worker_id: str, address: str) -> env_worker_pb2_grpc.EnvWorkerServiceStub:
-        channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+        channel = aio_channel(address, CHANNEL_OPTIONS)
         stub = env_worker_pb2_grpc.EnvWorkerServiceStub(channel)
         self._stubs[worker_id] = (address, channel, stub)
         return stub

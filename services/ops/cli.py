@@ -149,6 +149,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     with stack:
         print(f"stack up in {time.perf_counter() - t:.1f} s; gateway at {stack.gateway_address}; logs in {stack.workdir}")
+        print("security: loopback only, no TLS, no tokens: any local process may use every session "
+              "(fine on a workstation; for a shared network see docs/security.md)")
         for svc in stack.services.values():
             print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
         if args.demo:

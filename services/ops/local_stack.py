@@ -26,6 +26,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from services.common.policies import DEFAULT_POLICY
 from services.common.cpus import allowed_cpus, format_cpu_list, split_cpus, usable_cpus
+from services.common.tls import channel_credentials, read_tls
 
 HOST = "127.0.0.1"
 
@@ -52,10 +53,17 @@ def find_redis_server() -> str:
     raise RuntimeError("redis-server is not installed: install it (apt-get install redis-server, brew install redis)")
 
 
-def wait_healthy(address: str, timeout: float, proc: subprocess.Popen[bytes] | None = None, log: Path | None = None) -> None:
+def _channel(address: str, credentials: grpc.ChannelCredentials | None) -> grpc.Channel:
+    if credentials is None:
+        return grpc.insecure_channel(address)
+    return grpc.secure_channel(address, credentials)
+
+
+def wait_healthy(address: str, timeout: float, proc: subprocess.Popen[bytes] | None = None, log: Path | None = None,
+                 credentials: grpc.ChannelCredentials | None = None) -> None:
     """Block until the gRPC health check of ``address`` answers SERVING."""
     deadline = time.monotonic() + timeout
-    with grpc.insecure_channel(address) as channel:
+    with _channel(address, credentials) as channel:
         stub = health_pb2_grpc.HealthStub(channel)
         while time.monotonic() < deadline:
             if proc is not None and proc.poll() is not None:
@@ -101,8 +109,14 @@ class LocalStack:
     heartbeat_interval_ms: int = 1000
     heartbeat_timeout_ms: int = 3000
     redis_url: str | None = None
+    #: Run the private redis-server with append-only persistence (as deploy/compose and
+    #: deploy/k8s do), so a Redis restart keeps the sessions.
+    redis_appendonly: bool = False
     #: Also run the critic service (harness registry + Evaluate) with a store in the workdir.
     critic: bool = True
+    #: Token the stack presents for its own gateway calls (ListWorkers) when the gateway has auth
+    #: on (ZETTA_AUTH_TOKENS_FILE in ``extra_env``).
+    client_token: str | None = None
     #: Pin each env worker to its own share of the CPUs (ZETTA_CPUS), unless the caller sets
     #: ZETTA_CPUS or a CPU quota is tighter than the CPUs (docs/throughput.md: +4 % steps/s on 2 cores).
     pin_env_workers: bool = True
@@ -147,12 +161,21 @@ class LocalStack:
             self.stop()
             raise
 
-    def _start_redis(self) -> None:
+    def restart_redis(self, sig: int = signal.SIGTERM) -> None:
+        """Stop the private redis-server with ``sig`` and start it again on the same port and data
+        directory (what it kept depends on ``redis_appendonly``)."""
+        assert self.redis_proc is not None, "the stack runs no redis-server of its own"
+        self.redis_proc.send_signal(sig)
+        self.redis_proc.wait(timeout=30)
+        self._start_redis(self.redis_port)
+
+    def _start_redis(self, port: int | None = None) -> None:
         assert self.workdir is not None
-        self.redis_port = free_port()
+        self.redis_port = port or free_port()
         log = self.workdir / "redis.log"
         self.redis_proc = subprocess.Popen(
-            [find_redis_server(), "--bind", HOST, "--port", str(self.redis_port), "--save", "", "--appendonly", "no",
+            [find_redis_server(), "--bind", HOST, "--port", str(self.redis_port), "--save", "",
+             "--appendonly", "yes" if self.redis_appendonly else "no",
              "--dir", str(self.workdir), "--logfile", str(log)],
             stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True,
         )
@@ -167,6 +190,11 @@ class LocalStack:
             except OSError:
                 time.sleep(0.05)
         raise RuntimeError(f"redis-server did not start on port {self.redis_port}; see {log}")
+
+    def _credentials(self) -> grpc.ChannelCredentials | None:
+        """Mutual-TLS credentials from the services' ZETTA_TLS_* settings; None without TLS."""
+        tls = read_tls(self._base_env())
+        return None if tls is None else channel_credentials(tls)
 
     def _base_env(self) -> dict[str, str]:
         env = dict(os.environ)
@@ -190,7 +218,7 @@ class LocalStack:
                                     start_new_session=True)
         svc = Service(name, f"{HOST}:{port}", metrics_port, proc, log, env)
         self.services[name] = svc
-        wait_healthy(svc.address, timeout=120, proc=proc, log=log)
+        wait_healthy(svc.address, timeout=120, proc=proc, log=log, credentials=self._credentials())
         return svc
 
     def start_gateway(self, port: int | None = None) -> Service:
@@ -277,10 +305,11 @@ class LocalStack:
         from zetta_wire.v1 import gateway_pb2, gateway_pb2_grpc
 
         deadline = time.monotonic() + timeout
-        with grpc.insecure_channel(self.gateway_address) as channel:
+        metadata = (("authorization", f"Bearer {self.client_token}"),) if self.client_token else ()
+        with _channel(self.gateway_address, self._credentials()) as channel:
             stub = gateway_pb2_grpc.GatewayServiceStub(channel)
             while time.monotonic() < deadline:
-                workers = stub.ListWorkers(gateway_pb2.ListWorkersRequest(), timeout=5).workers
+                workers = stub.ListWorkers(gateway_pb2.ListWorkersRequest(), timeout=5, metadata=metadata).workers
                 if sum(w.alive for w in workers) >= n:
                     return
                 time.sleep(0.1)

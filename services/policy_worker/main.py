@@ -14,6 +14,7 @@ from services.policy_worker.metrics import PrometheusObserver
 from services.policy_worker.models.base import load_model
 from services.policy_worker.scheduler import BatchScheduler
 from services.policy_worker.servicer import PolicyWorkerServicer
+from services.policy_worker.warmup import WarmUpError, warm_up
 from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
@@ -32,6 +33,11 @@ async def main() -> None:
         model.name = name
     if cfg.input_check_family:
         check_models(models, cfg.input_check_family)
+    for name, model in models.items():
+        try:  # before binding the port: SERVING must mean the first request is served in normal time
+            warm_up(name, model)
+        except WarmUpError as exc:
+            raise ConfigError(f"policy_worker: {exc}") from None
     observer = PrometheusObserver()
     scheduler = BatchScheduler(lambda m, inputs, instr: models[m].infer(inputs, instr), cfg.scheduler, observer)
     if cfg.vla_split:

@@ -14,6 +14,7 @@ import subprocess
 import tomllib
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 import pytest
 import yaml
@@ -334,7 +335,16 @@ def test_kubernetes_manifests_follow_the_rules(overlay: Path) -> None:
     # The addresses the services dial are Services of this overlay.
     gw_container = deployments["gateway"]["spec"]["template"]["spec"]["containers"][0]
     gw_env = {e["name"]: e.get("value") for e in gw_container["env"]}
-    assert gw_env["ZETTA_REDIS_URL"].split("//")[1].split(":")[0] in by_kind["Service"]
+    redis_url = urlparse(gw_env["ZETTA_REDIS_URL"])
+    assert redis_url.hostname in by_kind["Service"]
+    assert redis_url.password == "$(REDIS_PASSWORD)", "the gateway dials Redis with its password"
+    # Ingress is denied by default; every Deployment's pods have a policy of their own.
+    policies = by_kind["NetworkPolicy"]
+    assert policies["default-deny-ingress"]["spec"]["podSelector"] == {}
+    for name in deployments:
+        assert any(p["spec"]["podSelector"].get("matchLabels", {}).items()
+                   <= deployments[name]["spec"]["template"]["metadata"]["labels"].items()
+                   for n, p in policies.items() if n != "default-deny-ingress"), f"{name}: no NetworkPolicy"
     for var in ("ZETTA_GATEWAY_ADDRESS", "ZETTA_POLICY_ADDRESSES"):
         host, port = env_worker[var]["value"].rsplit(":", 1)
         svc_ports = {p["port"] for p in by_kind["Service"][host]["spec"]["ports"]}

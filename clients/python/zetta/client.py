@@ -17,12 +17,14 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, cast
 
 import grpc
 import numpy as np
 from google.protobuf import struct_pb2
 
+from zetta.credentials import gateway_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
 from zetta_wire.codec import decode, decode_observation, encode
 from zetta_wire.errors import parse_error_metadata
@@ -33,18 +35,20 @@ class ZettaError(Exception):
     """A failed call: the gRPC status, its message, and the sessions at fault."""
 
     def __init__(self, code: grpc.StatusCode, details: str, session_ids: Sequence[str] = (),
-                 retry_after_ms: int | None = None) -> None:
+                 retry_after_ms: int | None = None, more_failed_sessions: int = 0) -> None:
         super().__init__(f"{code.name}: {details}")
         self.code = code
         self.details = details
         self.session_ids = list(session_ids)
         self.retry_after_ms = retry_after_ms
+        #: Failed sessions the server left out of ``session_ids`` to keep the metadata bounded.
+        self.more_failed_sessions = more_failed_sessions
 
     @classmethod
     def from_rpc(cls, err: grpc.aio.AioRpcError) -> "ZettaError":
         """Lift the trailing metadata the gateway sets into attributes."""
         details = parse_error_metadata(err.trailing_metadata())
-        return cls(err.code(), err.details() or "", details.session_ids, details.retry_after_ms)
+        return cls(err.code(), err.details() or "", details.session_ids, details.retry_after_ms, details.more)
 
 
 @dataclass
@@ -225,9 +229,12 @@ def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0,
 class Gateway:
     """A connection to the gateway; one channel, reused by every call and session."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, token: str | None = None, tls_ca: str | bytes | Path | None = None,
+                 client_cert: str | bytes | Path | None = None, client_key: str | bytes | Path | None = None) -> None:
+        """``token``: the bearer token of a gateway with auth on; ``tls_ca``: the CA (PEM file or
+        bytes) of a gateway serving TLS (docs/security.md)."""
         self.address = address
-        self._channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+        self._channel = gateway_channel(address, CHANNEL_OPTIONS, token, tls_ca, client_cert, client_key)
         self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
         self._batcher = _Batcher(self)
 

@@ -66,11 +66,12 @@ class _Proxy:
 class SyncGateway(_Proxy):
     """A blocking :class:`zetta.Gateway`; every method returns its result directly."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, **credentials: Any) -> None:
+        """``credentials``: ``token``, ``tls_ca``, ``client_cert``, ``client_key`` as for Gateway."""
         runner = _Loop()
 
         async def make() -> Gateway:
-            return Gateway(address)
+            return Gateway(address, **credentials)
 
         super().__init__(runner.run(make()), runner)
 

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 #: Comma-separated ids of the sessions the error concerns.
 FAILED_SESSIONS_KEY = "zetta-failed-sessions"
+#: How many failed sessions the bounded list above leaves out.
+FAILED_SESSIONS_MORE_KEY = "zetta-failed-sessions-more"
 #: Milliseconds after which a refused call (RESOURCE_EXHAUSTED) may be retried.
 RETRY_AFTER_KEY = "retry-after-ms"
 
@@ -21,6 +23,8 @@ class ErrorDetails:
 
     session_ids: list[str] = field(default_factory=list)
     retry_after_ms: int | None = None
+    #: Failed sessions left out of ``session_ids`` (the list is bounded).
+    more: int = 0
 
 
 def error_metadata(session_ids: Sequence[str] = (), retry_after_ms: int | None = None) -> tuple[tuple[str, str], ...]:
@@ -37,10 +41,13 @@ def parse_error_metadata(metadata: Iterable[tuple[str, str | bytes]] | None) -> 
     """The sessions and retry hint of a failed call's trailing metadata; unknown keys are ignored."""
     sessions: list[str] = []
     retry: int | None = None
+    more = 0
     for key, value in metadata or ():
         text = value.decode() if isinstance(value, bytes) else value
         if key == FAILED_SESSIONS_KEY:
             sessions = [s for s in text.split(",") if s]
         elif key == RETRY_AFTER_KEY:
             retry = int(text)
-    return ErrorDetails(sessions, retry)
+        elif key == FAILED_SESSIONS_MORE_KEY:
+            more = int(text)
+    return ErrorDetails(sessions, retry, more)

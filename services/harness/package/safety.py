@@ -4,7 +4,7 @@ Critics and tools are written by the evolver's template search or by an LLM, and
 inside the env worker and the critic service at every env step. Before import, each module's
 syntax tree must show that it only imports an allowlist of pure computation modules and cannot
 reach the usual escape hatches (dynamic code, files, reflection through dunder attributes or
-getattr). The checks guard against careless or confused code, not against a determined attacker;
+getattr, modules held by allowed modules, frames, private attributes of anything but self). The checks guard against careless or confused code, not against a determined attacker;
 the runtime adds a time budget per critic call (docs/harness.md, "Safety").
 """
 
@@ -79,6 +79,20 @@ FORBIDDEN_ATTRIBUTES: frozenset[str] = frozenset(
         "testing",
     }
 )
+#: Attributes that lead out of the allowlist: modules that allowed modules hold (``typing.sys``,
+#: ``dataclasses.inspect``, ``numpy.core``), frames and code objects (a running generator's
+#: ``gi_frame.f_back.f_globals`` is its caller's globals), string-named attribute access
+#: (``operator.attrgetter``) and ``str.format``, whose fields walk attributes of its arguments
+#: even when the format string is built at run time (f-strings remain).
+ESCAPE_ATTRIBUTES: frozenset[str] = frozenset(
+    {
+        "sys", "os", "builtins", "modules", "inspect", "types", "operator", "importlib", "subprocess",
+        "core", "contextlib", "warnings", "copyreg", "gc",
+        "gi_frame", "gi_code", "cr_frame", "cr_code", "ag_frame", "ag_code", "f_back", "f_globals", "f_locals",
+        "f_builtins", "f_code", "tb_frame", "tb_next", "co_code",
+        "attrgetter", "methodcaller", "format", "format_map",
+    }
+)
 #: A str.format field that walks attributes of its argument, e.g. "{0.__class__}".
 _FORMAT_DUNDER = re.compile(r"\{[^{}]*__")
 
@@ -142,6 +156,11 @@ class _Checker(ast.NodeVisitor):
             self._add(node, f"access to the dunder attribute '.{node.attr}' is not allowed")
         elif node.attr in FORBIDDEN_ATTRIBUTES:
             self._add(node, f"access to '.{node.attr}' is not allowed (file, pickle or raw-memory access)")
+        elif node.attr in ESCAPE_ATTRIBUTES:
+            hint = "; use an f-string" if node.attr in ("format", "format_map") else ""
+            self._add(node, f"access to '.{node.attr}' is not allowed (it leads out of the allowed modules{hint})")
+        elif node.attr.startswith("_") and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+            self._add(node, f"access to the private attribute '.{node.attr}' is only allowed on self or cls")
         self.generic_visit(node)
 
     def visit_Constant(self, node: ast.Constant) -> None:

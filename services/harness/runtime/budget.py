@@ -125,3 +125,25 @@ def guarded_call(fn: Callable[..., Any], args: tuple[Any, ...], budget: CallBudg
     else:
         budget.suspect = False
     return result, ""
+
+
+@dataclass(frozen=True)
+class PlatformLimits:
+    """The most time a package's critics may take, set by the platform, not by the package: a
+    package may ask for less (``critic_budget_ms``, ``critic_hard_limit_ms`` in SKILL.md), never more."""
+
+    budget_s: float
+    hard_limit_s: float
+
+    @classmethod
+    def from_env(cls, environ: Any = None) -> "PlatformLimits":
+        """ZETTA_CRITIC_MAX_BUDGET_MS (50) and ZETTA_CRITIC_MAX_HARD_LIMIT_MS (1000); ConfigError when bad."""
+        from services.common.config import EnvReader
+
+        env = EnvReader(environ)
+        budget = env.float("ZETTA_CRITIC_MAX_BUDGET_MS", 50.0, minimum=0.01)
+        hard = env.float("ZETTA_CRITIC_MAX_HARD_LIMIT_MS", 1000.0, minimum=1.0)
+        if hard < budget:
+            env.fail(f"ZETTA_CRITIC_MAX_HARD_LIMIT_MS={hard} must be >= ZETTA_CRITIC_MAX_BUDGET_MS={budget}")
+        env.finish("harness runtime")
+        return cls(budget / 1000.0, hard / 1000.0)

@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 
 from services.harness.package.model import LoadedPackage
-from services.harness.runtime.api import Frame, Proposal, Window
-from services.harness.runtime.budget import CallBudget, guarded_call
-from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
 from services.harness.runtime import signals
+from services.harness.runtime.api import Frame, Proposal, Window
+from services.harness.runtime.budget import CallBudget, PlatformLimits, guarded_call
+from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
 from services.harness.runtime.library.recoveries import DONE, FAILED, Chain, PolicyUnder
 from services.harness.runtime.library.schema import ParamError
 from services.harness.runtime.limits import INTERVENTION_CAP
@@ -259,6 +259,10 @@ class HarnessRuntime:
             self.noise = noise_from_table(skill.get("perception", {}))
         except (TypeError, ValueError) as exc:
             raise HarnessError(str(exc)) from None
+        # The platform's limits bound what the package asked for (it may ask for less, never more).
+        self.limits = PlatformLimits.from_env()
+        self.budget_s = min(self.budget_s, self.limits.budget_s)
+        self.hard_limit_s = min(self.hard_limit_s, self.limits.hard_limit_s)
         try:
             self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
         except (ValueError, ParamError) as exc:
@@ -297,7 +301,7 @@ class HarnessRuntime:
         self.instruction = instruction
         self.milestone_names = tuple(milestone_names)
         self.critics = [
-            Critic(n, fn, CallBudget(b if b is not None else self.budget_s, self.hard_limit_s))
+            Critic(n, fn, CallBudget(min(b, self.limits.budget_s) if b is not None else self.budget_s, self.hard_limit_s))
             for n, fn, b in self._critic_defs
         ]
         self._frames: deque[Frame] = deque(maxlen=self.window_size)
