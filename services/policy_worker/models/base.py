@@ -61,6 +61,12 @@ def _zetta_vla_image() -> PolicyModel:
     return make_image_policy()
 
 
+def _openpi() -> PolicyModel:
+    from services.policy_worker.openpi.pool import make_openpi_pool
+
+    return make_openpi_pool()
+
+
 FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
     # One generic skill per BDDL goal predicate on privileged state (models/oracle.py; docs/oracle.md).
@@ -68,6 +74,8 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     # The Zetta VLA (services/policy_worker/vla): shipped state checkpoint; image variant when trained.
     "zetta-vla-state": _zetta_vla_state,
     "zetta-vla-image": _zetta_vla_image,
+    # Forwards to running openpi policy servers (services/policy_worker/openpi; ZETTA_OPENPI_*).
+    "openpi": _openpi,
 }
 
 
