@@ -46,10 +46,16 @@ class Child:
                 self.proc.wait()
 
 
-def _spawn(module: str, settings: Mapping[str, str], log: Path) -> tuple[subprocess.Popen[bytes], int]:
+def child_env() -> dict[str, str]:
+    """This environment with the checkout on PYTHONPATH and services bound to loopback."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(_ROOT), str(_ROOT / "clients" / "python"), env.get("PYTHONPATH", "")])
     env["ZETTA_BIND_HOST"] = HOST
+    return env
+
+
+def _spawn(module: str, settings: Mapping[str, str], log: Path) -> tuple[subprocess.Popen[bytes], int]:
+    env = child_env()
     metrics_port = free_port()
     env["ZETTA_METRICS_PORT"] = str(metrics_port)
     env.update(settings)
