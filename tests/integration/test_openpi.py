@@ -111,6 +111,12 @@ def test_pool_refuses_unreachable_servers(tmp_path: Path) -> None:
         start_policy_worker("openpi", tmp_path, {"ZETTA_OPENPI_SERVERS": "127.0.0.1:9"})
 
 
+def test_endpoint_refuses_an_unreachable_policy_worker(tmp_path: Path) -> None:
+    """An endpoint whose policy worker is not there exits at start with a message naming it."""
+    with pytest.raises(RuntimeError, match="policy worker 127.0.0.1:9 did not list its models"):
+        start_endpoint("127.0.0.1:9", tmp_path)
+
+
 def test_endpoint_batches_concurrent_openpi_clients(tmp_path: Path) -> None:
     """Eight openpi-client connections at once through the endpoint: every answer is the model's,
     the policy worker formed batches larger than one, and a bad observation gets a readable error."""

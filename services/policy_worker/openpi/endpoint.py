@@ -40,6 +40,7 @@ class OpenPIEndpoint:
     def __init__(self, policy_addresses: list[str], model: str = "", timeout_ms: int = 10_000) -> None:
         if not policy_addresses:
             raise ValueError("no policy worker address: set ZETTA_POLICY_ADDRESSES")
+        self.addresses = list(policy_addresses)
         self._channels = [grpc.aio.insecure_channel(a) for a in policy_addresses]
         self._stubs = [policy_worker_pb2_grpc.PolicyWorkerServiceStub(c) for c in self._channels]
         self._next = itertools.cycle(range(len(self._stubs)))
@@ -52,7 +53,11 @@ class OpenPIEndpoint:
 
     async def start(self, host: str, port: int) -> int:
         """Read the model's signature from a policy worker and listen; returns the bound port."""
-        models = (await self._stubs[0].ListModels(policy_worker_pb2.ListModelsRequest(), timeout=10)).models
+        try:
+            models = (await self._stubs[0].ListModels(policy_worker_pb2.ListModelsRequest(), timeout=10)).models
+        except grpc.aio.AioRpcError as exc:
+            raise ValueError(f"policy worker {self.addresses[0]} did not list its models: {exc.code().name}: "
+                             f"{exc.details()} (ZETTA_POLICY_ADDRESSES)") from None
         chosen = [m for m in models if (m.name == self.model if self.model else m.is_default)]
         if not chosen:
             raise ValueError(f"the policy worker serves no model {self.model!r}; it serves "
