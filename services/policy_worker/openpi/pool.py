@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import queue
+import socket
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -80,9 +81,24 @@ class _Connection:
         host, _, port = server.rpartition(":")
         self.server = server
         self.client = WebsocketClientPolicy(host=host, port=int(port))
+        #: The caller gave up on this connection's request: whatever it reads next is stale.
+        self.abandoned = False
+
+    def abandon(self) -> None:
+        """Mark the connection stale and cut its socket, so a thread blocked in recv fails now
+        (a websocket close handshake would wait for the busy server)."""
+        self.abandoned = True
+        try:
+            self.client._ws.socket.shutdown(socket.SHUT_RDWR)  # noqa: SLF001 - openpi-client exposes no close()
+        except OSError:
+            pass
 
     def close(self) -> None:
-        self.client._ws.close()  # noqa: SLF001 - openpi-client exposes no close()
+        """Close the socket without a handshake."""
+        try:
+            self.client._ws.socket.close()  # noqa: SLF001
+        except OSError:
+            pass
 
 
 class OpenPIPool:
@@ -98,14 +114,17 @@ class OpenPIPool:
                              "(see docs/policies.md)") from None
         self.config = config
         self.chunk_size = config.chunk_size
-        self._idle: queue.Queue[_Connection] = queue.Queue()
+        connections = []
         for server in config.servers:
             for _ in range(config.connections):
                 try:
-                    self._idle.put(_Connection(server))
+                    connections.append(_Connection(server))
                 except OSError as exc:
                     raise ValueError(f"openpi server {server} is not reachable: {exc}") from None
-        first = self._idle.queue[0].client.get_server_metadata()
+        self._idle: queue.Queue[_Connection] = queue.Queue()
+        for conn in connections:
+            self._idle.put(conn)
+        first = connections[0].client.get_server_metadata()
         self._specs = specs_from_metadata(first)
         if self._specs is not None and not config.chunk_size_set:
             self.chunk_size = int(first.get("chunk_size", self.chunk_size))
@@ -136,7 +155,7 @@ class OpenPIPool:
             except FutureTimeout:
                 for f2, h in zip(futures, held):
                     if not f2.done() and h:
-                        h[0].close()  # its thread's recv fails, and _one replaces the connection
+                        h[0].abandon()  # its thread's recv fails, and _one replaces the connection
                 raise TimeoutError(f"openpi servers gave no answer within {self.config.timeout_s * 1000:.0f} ms "
                                    f"(ZETTA_OPENPI_TIMEOUT_MS)") from None
         return np.stack(out)
@@ -146,15 +165,18 @@ class OpenPIPool:
         held.append(conn)
         metrics.IN_FLIGHT.labels(conn.server).inc()
         start = time.monotonic()
+        failure: Exception | None = None
         try:
             reply = conn.client.infer(to_openpi(sample, instruction))
-        except Exception:
-            metrics.ERRORS.labels(conn.server).inc()
-            conn = self._replace(conn)
-            raise
+        except Exception as exc:  # noqa: BLE001 - re-raised below once the connection is replaced
+            failure = exc
         finally:
             metrics.IN_FLIGHT.labels(conn.server).dec()
-            self._idle.put(conn)
+        if failure is not None or conn.abandoned:
+            metrics.ERRORS.labels(conn.server).inc()
+            self._idle.put(self._replace(conn))
+            raise failure or TimeoutError(f"openpi server {conn.server} answered after the deadline")
+        self._idle.put(conn)
         metrics.LATENCY.labels(conn.server).observe(time.monotonic() - start)
         actions = np.asarray(reply["actions"], np.float32)
         if actions.ndim != 2 or actions.shape[1] != 7 or len(actions) < self.chunk_size:
@@ -164,10 +186,7 @@ class OpenPIPool:
 
     def _replace(self, conn: _Connection) -> _Connection:
         """A fresh connection to the same server after a failure (the old one may be mid-reply)."""
-        try:
-            conn.close()
-        except Exception:  # noqa: BLE001 - already broken
-            pass
+        conn.close()
         try:
             return _Connection(conn.server)
         except OSError:  # the server is down: keep the broken one, its next use fails fast and retries

@@ -89,7 +89,10 @@ class SerialOpenPIServer:
             self.requests += 1
             reply: dict[str, Any] = {"actions": np.asarray(actions, np.float32),
                                      "server_timing": {"infer_ms": (time.monotonic() - start) * 1000}}
-            await ws.send(packer.pack(reply))
+            try:
+                await ws.send(packer.pack(reply))
+            except websockets.ConnectionClosed:  # the client gave up while the model ran
+                return
 
 
 def _healthz(_conn: ServerConnection, request: Request) -> Response | None:
