@@ -8,7 +8,7 @@ STAMP := $(VENV)/.zetta-installed
 
 .PHONY: setup proto demo up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim lint clean
 
-setup: $(STAMP) proto $(VENV)/.zetta-validators
+setup: $(STAMP) proto $(VENV)/.zetta-validators $(VENV)/.zetta-interop
 
 # One venv with everything; the stamp re-runs the install when pyproject.toml changes.
 $(STAMP): pyproject.toml
@@ -22,6 +22,11 @@ $(STAMP): pyproject.toml
 # promtool, prometheus and docker-compose from Debian for tests/deploy (skipped there when missing).
 $(VENV)/.zetta-validators: $(STAMP) deploy/tools/install-validators.sh
 	bash deploy/tools/install-validators.sh $(VENV)
+	touch $@
+
+# LeRobot, openpi and Node.js libraries the interop tests drive (skipped there when missing).
+$(VENV)/.zetta-interop: $(STAMP) scripts/install-interop.sh
+	bash scripts/install-interop.sh $(VENV)
 	touch $@
 
 proto: $(STAMP)

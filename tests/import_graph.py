@@ -31,9 +31,10 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "services.policy_worker": ("services.common", "zetta_wire", "services.env_worker.families="),
     "services.critic": ("services.common", "services.harness", "zetta_wire"),
     # The evolver drives episodes through the gateway like any client (the SDK's public API) and
-    # starts the local stack when no gateway is given.
+    # starts the local stack when no gateway is given; offline (exports, diagnosis) it may read
+    # task definitions through the families' public API.
     "services.evolver": ("services.common", "services.harness", "zetta_wire", "zetta=",
-                         "services.ops.local_stack="),
+                         "services.ops.local_stack=", "services.env_worker.families="),
     # Operations wire the SDK and the services together: the top of the graph.
     "services.ops": ("services", "zetta", "zetta_wire"),
 }

@@ -15,6 +15,17 @@ from typing import Any
 
 from services.common.specs import TensorSpec, render_config
 
+#: The robot's own proprioception as the shipped policy reads it, (name, width) in order: what a
+#: real robot reports about itself. Exports (LeRobot's ``observation.state``) use the same columns.
+PROPRIO_INPUTS: tuple[tuple[str, int], ...] = (
+    ("robot0_eef_pos", 3),
+    ("robot0_eef_quat", 4),
+    ("robot0_gripper_qpos", 2),
+    ("robot0_joint_pos", 7),
+)
+#: One action: end-effector delta (xyz, rotation) and the gripper.
+ACTION_DIM = 7
+
 #: The frozen policy every command uses unless told otherwise.
 DEFAULT_POLICY = "zetta-vla-image"
 #: The state-based VLA that reads object poses; loadable for comparison, never a default.

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from services.common.config import EnvReader
 from services.common.cpus import usable_cpus
+from services.env_worker.advertise import advertised_address
 from services.env_worker.policy_client import InferHold
 
 #: Longest wait of a held inference request (policy_client.py); docs/throughput.md measures it.
@@ -94,10 +95,7 @@ class EnvWorkerConfig:
         """Fill the worker id and advertised address once the port is bound."""
         from dataclasses import replace
 
-        # A wildcard bind address cannot be dialled: advertise the host name instead (what a
-        # container or pod is reachable by).
-        host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
-        address = self.advertise_address or f"{host}:{bound_port}"
+        address = advertised_address(self.host, bound_port, self.gateway_address, self.advertise_address)
         return replace(
             self,
             port=bound_port,

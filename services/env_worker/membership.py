@@ -78,7 +78,8 @@ class Membership:
             dropped = self._drop_others(list(resp.session_ids))
             log.info(
                 "registered",
-                extra={"fields": {"worker": self.cfg.worker_id, "kept": len(resp.session_ids), "dropped": len(dropped)}},
+                extra={"fields": {"worker": self.cfg.worker_id, "address": self.cfg.advertise_address,
+                                  "kept": len(resp.session_ids), "dropped": len(dropped)}},
             )
             return
 

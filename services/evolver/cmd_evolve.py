@@ -1,7 +1,7 @@
 """`zetta evolve`: the three loops on a suite's tasks, resumable, with a Markdown report.
 
   zetta evolve --suite libero_goal_task --tasks 6,9 --rounds 2 --dev-seeds 20 --heldout-seeds 10 --test-seeds 20
-  zetta evolve export --store DIR --out DATASET     (LeRobot-style parquet + mp4 of the stored rollouts)
+  zetta evolve export --store DIR --out DATASET     (a LeRobot v3.0 dataset of the stored rollouts)
   zetta evolve experiment [--suites ...] [--tasks 0-9] (every task of several suites + transfer, one summary)
 
 Without --gateway a local stack is started (Redis, gateway, critic service, a policy worker
@@ -30,9 +30,10 @@ from services.evolver.store import RolloutStore, StoreError
 
 
 def _export(argv: Sequence[str]) -> int:
-    from services.evolver.export import export_lerobot
+    from services.evolver.instructions import libero_instructions
+    from services.evolver.lerobot_export import export_lerobot
 
-    p = argparse.ArgumentParser(prog="zetta evolve export", description="export stored rollouts (LeRobot-style)")
+    p = argparse.ArgumentParser(prog="zetta evolve export", description="export stored rollouts as a LeRobot v3.0 dataset")
     p.add_argument("--store", type=Path, required=True)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--task", default=None)
@@ -40,7 +41,7 @@ def _export(argv: Sequence[str]) -> int:
     a = p.parse_args(argv)
     store = RolloutStore(a.store)
     rows = store.query(task=a.task, harness=a.harness)
-    info = export_lerobot(store, rows, a.out)
+    info = export_lerobot(store, rows, a.out, libero_instructions((r.suite, r.task) for r in rows))
     print(f"exported {info['total_episodes']} episodes, {info['total_frames']} frames to {a.out}")
     return 0
 

@@ -163,8 +163,10 @@ class Hosts:
         ip, gateway = self.net.ip(ENV_HOSTS[host]), self.net.ip(1)
         name = f"env-{host}"
         self.start(name, host, [sys.executable, "-m", "services.env_worker.main"],
-                   ZETTA_BIND_HOST=ip, ZETTA_ENV_WORKER_PORT="50061", ZETTA_METRICS_PORT="-1",
-                   ZETTA_ADVERTISE_ADDRESS=f"{ip}:50061", ZETTA_WORKER_ID=name,
+                   # A wildcard bind and no ZETTA_ADVERTISE_ADDRESS: the worker must advertise the
+                   # address the gateway reaches it by (its host's IP), as on a real second host.
+                   ZETTA_BIND_HOST="0.0.0.0", ZETTA_ENV_WORKER_PORT="50061", ZETTA_METRICS_PORT="-1",
+                   ZETTA_WORKER_ID=name,
                    ZETTA_GATEWAY_ADDRESS=f"{gateway}:50051", ZETTA_POLICY_ADDRESSES=f"{gateway}:50071",
                    ZETTA_SLOTS=str(SLOTS), ZETTA_ENV_FAMILIES="robosuite", ZETTA_GRACE_SECONDS="2")
         if wait:

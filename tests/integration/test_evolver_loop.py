@@ -23,7 +23,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from services.evolver.evolve import EvolveConfig, Evolution
-from services.evolver.export import export_lerobot
+from services.evolver.lerobot_export import export_lerobot
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
@@ -97,7 +97,8 @@ def test_a_repair_that_helps_is_validated_admitted_and_measured_on_test_seeds(ev
     assert "Dev success per round" in report and "Test success" in report
     info = export_lerobot(store, profile, tmp_path / "dataset")
     assert info["total_frames"] == sum(r.steps for r in profile)
-    assert pq.read_table(tmp_path / "dataset" / "data" / "chunk-000" / "episode_000000.parquet").num_rows == MAX_STEPS
+    episodes = pq.read_table(tmp_path / "dataset" / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+    assert episodes.column("length")[0].as_py() == MAX_STEPS
     registry.close()
 
 
@@ -181,9 +182,9 @@ async def test_rollout_video_is_filed_and_exported(evo_stack: Endpoints, tmp_pat
     (rollout,) = await runner.run([key])
     assert rollout.video_path and (store.root / rollout.video_path).stat().st_size > 1000
     info = export_lerobot(store, [rollout], tmp_path / "dataset")
-    assert info["total_videos"] == 1
-    assert (tmp_path / "dataset" / "videos" / "chunk-000" / "observation.images.agentview" /
-            "episode_000000.mp4").stat().st_size == (store.root / rollout.video_path).stat().st_size
+    assert info["features"]["observation.images.agentview"]["info"]["video.codec"] == "h264"
+    assert (tmp_path / "dataset" / "videos" / "observation.images.agentview" / "chunk-000" /
+            "file-000.mp4").stat().st_size > 1000
 
 
 async def test_invalid_attempts_are_rerun_on_the_same_key(tmp_path: Path) -> None:

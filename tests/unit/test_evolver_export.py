@@ -1,17 +1,13 @@
-"""LeRobot-style export and the Markdown report, from a store filled with constructed rollouts."""
+"""The Markdown report, from a store filled with constructed rollouts (the export: test_lerobot_export.py)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import pyarrow.parquet as pq
-import pytest
 
-from services.evolver.export import export_lerobot
 from services.evolver.report import write_report
 from services.evolver.store import EpisodeKey, Outcome, RolloutStore
-from tests.unit.test_evolver_fixtures import K, make_trace
+from tests.unit.test_evolver_fixtures import make_trace
 
 
 def filled(tmp_path: Path) -> RolloutStore:
@@ -25,25 +21,6 @@ def filled(tmp_path: Path) -> RolloutStore:
               Outcome(kind == "success", int(tr.frame_step[-1]), "" if kind == "success" else "on(a,b)", [], tr,
                       str(video) if seed == 2 else "", 1.0))
     return s
-
-
-def test_export_writes_parquet_videos_and_meta(tmp_path: Path) -> None:
-    """One parquet per episode with one row per executed action, the video copied, meta consistent."""
-    s = filled(tmp_path)
-    info = export_lerobot(s, s.query(), tmp_path / "ds", {"6": "put the a on the b"})
-    rows = 2 * (K - 1)
-    assert info["total_episodes"] == 2 and info["total_frames"] == 2 * rows and info["total_videos"] == 1
-    t = pq.read_table(tmp_path / "ds" / "data" / "chunk-000" / "episode_000001.parquet")
-    assert t.num_rows == rows and t.column("index")[0].as_py() == rows
-    assert len(t.column("action")[0].as_py()) == 7 and len(t.column("observation.state")[0].as_py()) == 16
-    assert t.column("next.done")[-1].as_py() and not t.column("next.success")[-1].as_py()
-    assert (tmp_path / "ds" / "videos" / "chunk-000" / "observation.images.agentview" / "episode_000000.mp4").exists()
-    meta = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())
-    assert meta["features"]["action"]["shape"] == [7] and meta["fps"] == 20
-    tasks = (tmp_path / "ds" / "meta" / "tasks.jsonl").read_text().splitlines()
-    assert json.loads(tasks[0]) == {"task_index": 0, "task": "put the a on the b"}
-    with pytest.raises(FileExistsError):
-        export_lerobot(s, s.query(), tmp_path / "ds")
 
 
 def test_report_from_recorded_events(tmp_path: Path) -> None:

@@ -19,6 +19,14 @@ from services.env_worker.families.contract import (
 from services.env_worker.families.registry import canonical_config_key, family_names, get_family, register_family
 from services.env_worker.rendering import select_gl_backend
 
+
+def libero_instruction(suite_name: str, task: str) -> str | None:
+    """The instruction a LIBERO session of (suite, task) is given, read from LIBERO's task files
+    without building an env (offline tools name episodes by it); None for an unknown suite."""
+    from services.env_worker.families.libero import libero_instruction as lookup
+
+    return lookup(suite_name, task)
+
 __all__ = [
     "ConfigError",
     "EnvFamily",
@@ -31,6 +39,7 @@ __all__ = [
     "canonical_config_key",
     "family_names",
     "get_family",
+    "libero_instruction",
     "register_family",
     "select_gl_backend",
 ]

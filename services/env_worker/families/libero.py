@@ -379,3 +379,16 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
         raw.update(self._state.observation())
         raw["object_state"] = zero_padded(obs["object-state"], cfg["object_state_dim"], "object-state")
         return raw
+
+
+def libero_instruction(suite_name: str, task: str) -> str | None:
+    """The instruction a session of (suite, task index or name) is given, without building an env
+    (LIBERO-PRO's task and language variants take it from the BDDL); None for an unknown suite."""
+    suites = benchmark.get_benchmark_dict()
+    if suite_name not in suites:
+        return None
+    suite = suites[suite_name]()
+    t = suite.get_task(_resolve_task(list(suite.get_task_names()), task))
+    variant = suite_name.endswith(_BDDL_INSTRUCTION_SUFFIXES)
+    bddl = bddl_utils.get_problem_info(_bddl_path(t))["language_instruction"] if variant else ""
+    return bddl or t.language

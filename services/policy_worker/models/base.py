@@ -73,6 +73,12 @@ def _zetta_vla_image() -> PolicyModel:
     return make_image_policy()
 
 
+def _openpi() -> PolicyModel:
+    from services.policy_worker.openpi.pool import make_openpi_pool
+
+    return make_openpi_pool()
+
+
 FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
     # The same, weakened: it closes its gripper 4 cm above the grasp point (a known failure a bounded
@@ -86,6 +92,8 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "zetta-vla-image": _zetta_vla_image,
     # Its state-based sibling, which reads the simulator's object poses: a baseline, never a default.
     "privileged-state-baseline": _privileged_state_baseline,
+    # Forwards to running openpi policy servers (services/policy_worker/openpi; ZETTA_OPENPI_*).
+    "openpi": _openpi,
 }
 
 

@@ -10,21 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.common.policies import PROPRIO_INPUTS
 from services.common.specs import TensorSpec, render_config
 
 #: (name, width) in the order they are concatenated.
-STATE_INPUTS: tuple[tuple[str, int], ...] = (
-    ("robot0_eef_pos", 3),
-    ("robot0_eef_quat", 4),
-    ("robot0_gripper_qpos", 2),
-    ("robot0_joint_pos", 7),
-    ("object_state", 140),
-)
+STATE_INPUTS: tuple[tuple[str, int], ...] = (*PROPRIO_INPUTS, ("object_state", 140))
 STATE_DIM = sum(w for _, w in STATE_INPUTS)
-ACTION_DIM = 7
 #: Image inputs of the image-based variant (LIBERO camera names as canonical obs names).
 IMAGE_INPUTS: tuple[str, ...] = ("agentview_image",)
-PROPRIO_INPUTS: tuple[tuple[str, int], ...] = STATE_INPUTS[:4]
 PROPRIO_DIM = sum(w for _, w in PROPRIO_INPUTS)
 
 

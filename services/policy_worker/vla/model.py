@@ -24,7 +24,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from services.policy_worker.vla.features import ACTION_DIM, PROPRIO_DIM, STATE_DIM
+from services.common.policies import ACTION_DIM
+from services.policy_worker.vla.features import PROPRIO_DIM, STATE_DIM
 from services.policy_worker.vla.text import TEXT_DIM
 
 #: Gripper outputs below this magnitude mean "hold" (0); the teacher commands -1, -0.5, 0, 0.5, 1.

@@ -1,0 +1,1 @@
+"""openpi interoperability: serve through openpi policy servers, and serve openpi clients."""
