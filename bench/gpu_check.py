@@ -75,9 +75,9 @@ class Profile:
     episodes: int
     limit_seconds: float
     steps: tuple[str, ...]
+    limits: dict[str, float] = field(default_factory=dict)
     #: The serving step's max_batch (it warms every batch size up to it first).
     max_batch: int = 32
-    limits: dict[str, float] = field(default_factory=dict)
 
 
 PROFILES = {
