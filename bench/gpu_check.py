@@ -225,7 +225,8 @@ def setup(args: argparse.Namespace, results: Path) -> tuple[StepResult, str]:
     notes = [torch_note(found, gpu)]
     if missing and not args.no_install:
         venv = Path(args.venv)
-        pip_args = ["--no-index", "--find-links", args.wheels] if args.wheels else []
+        # Without a wheel directory, an index that cannot be reached fails fast instead of retrying.
+        pip_args = ["--no-index", "--find-links", args.wheels] if args.wheels else ["--retries", "1", "--timeout", "15"]
         if not (venv / "bin" / "python").exists():
             run_child([python, "-m", "venv", "--system-site-packages", str(venv)], 120)
         vpy = str(venv / "bin" / "python")
