@@ -34,12 +34,14 @@ per step, the policy steps only: what the test suite runs). ``--profile auto`` (
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes.util
 import glob
 import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -106,21 +108,55 @@ def log(msg: str) -> None:
     print(f"[gpu_check {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
+def descendants(pid: int) -> list[int]:
+    """Every live process below ``pid`` (from /proc), also those in sessions of their own: the
+    rollout's LocalStack starts each service with ``start_new_session``."""
+    children: dict[int, list[int]] = {}
+    for stat in glob.glob("/proc/[0-9]*/stat"):
+        try:
+            text = Path(stat).read_text()
+        except OSError:
+            continue
+        ppid = int(text.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(stat.split("/")[2]))
+    out, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            out.append(child)
+            todo.append(child)
+    return out
+
+
+def stop_tree(pid: int, grace_s: float = 5.0) -> None:
+    """SIGTERM a step's process and everything below it, SIGKILL what is left after ``grace_s``."""
+    tree = [pid, *descendants(pid)]
+    for p in tree:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and any(Path(f"/proc/{p}").exists() for p in tree[1:]):
+        time.sleep(0.1)
+    for p in [pid, *descendants(pid), *tree]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGKILL)
+
+
 def run_child(cmd: list[str], limit_s: float, env: dict[str, str] | None = None,
               log_path: Path | None = None) -> tuple[int | None, str]:
-    """Run ``cmd`` in its own process group, killed at ``limit_s``; (exit code or None if killed, output)."""
-    with subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                          start_new_session=True) as proc:
+    """Run ``cmd``, stopped with everything it started at ``limit_s``; (exit code or None if stopped, output).
+    With ``log_path`` the output goes there as it comes (readable while the step runs)."""
+    with contextlib.ExitStack() as stack:
+        sink = stack.enter_context(log_path.open("w")) if log_path is not None else subprocess.PIPE
+        proc = stack.enter_context(subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=sink, stderr=subprocess.STDOUT,
+                                                    text=True, start_new_session=True))
         try:
             out, _ = proc.communicate(timeout=limit_s)
             code: int | None = proc.returncode
         except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, 9)
+            stop_tree(proc.pid)
             out, _ = proc.communicate()
             code = None
-    if log_path is not None:
-        log_path.write_text(out or "")
-    return code, out or ""
+    return code, (log_path.read_text(errors="replace") if log_path is not None else out or "")
 
 
 def tail(text: str, lines: int = 3) -> str:
