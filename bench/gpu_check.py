@@ -473,8 +473,9 @@ def main(argv: list[str] | None = None) -> int:
             (results / "setup.json").write_text(json.dumps(asdict(setup_result)))
             argv_rest = list(argv if argv is not None else sys.argv[1:])
             log(f"running the steps under {python}")
-            return subprocess.call([python, __file__, *argv_rest, "--results", str(results),
-                                    "--setup-json", str(results / "setup.json")], env=child_env())
+            where = [] if args.results else ["--results", str(results)]
+            return subprocess.call([python, __file__, *argv_rest, *where, "--setup-json", str(results / "setup.json")],
+                                   env=child_env())
     info = setup_result.data.get("probe", {})
     profile = args.profile if args.profile != "auto" else ("gpu" if has_cuda(info) else "cpu")
     prof = PROFILES[profile]
