@@ -40,6 +40,7 @@ import glob
 import json
 import os
 import platform
+import shlex
 import shutil
 import signal
 import subprocess
@@ -51,6 +52,8 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python"), str(ROOT / "bench")]
+
+import gpu_report  # noqa: E402
 
 #: `zetta bench rollout` through its command-line entry (the one place to change if it moves).
 ROLLOUT_COMMAND = ["-m", "zetta.cli", "bench", "rollout"]
@@ -87,8 +90,8 @@ class Profile:
 PROFILES = {
     "gpu": Profile("1,8,32,64", 1.0, "200,1000,3000", 3.0, 3, 10, 14, "8,16,32,64", 120, 16, 4.0, STEPS,
                    {"batch": 60, "serving": 80, "render": 60, "rollout": 220, "scale-out": 30}),
-    "cpu": Profile("1,8,32,64", 0.5, "50,200,400", 2.0, 2, 5, 2, "8,16,32", 120, 16, 4.0, STEPS,
-                   {"batch": 120, "serving": 150, "render": 240, "rollout": 600, "scale-out": 60}),
+    "cpu": Profile("1,8,32,64", 0.5, "50,200,400", 2.0, 2, 5, 2, "8,16", 120, 16, 4.0, STEPS,
+                   {"batch": 120, "serving": 150, "render": 300, "rollout": 900, "scale-out": 60}),
     "tiny": Profile("1,8", 0.1, "20", 0.5, 1, 1, 1, "2", 8, 2, 1.0, ("batch", "serving"),
                     {"batch": 60, "serving": 90, "render": 120, "rollout": 240, "scale-out": 30}, 4),
 }
@@ -407,9 +410,9 @@ def rollout_step(args: argparse.Namespace, prof: Profile, info: dict[str, Any], 
     t0 = time.perf_counter()
     code, text = run_child(cmd, limit, child_env(extra), results / "rollout.log")
     seconds = time.perf_counter() - t0
-    data = json.loads(out.read_text()) if out.exists() else {}
+    data = json.loads(out.read_text()) if out.exists() else {"logged_points": gpu_report.logged_points(text)}
     data["policy_device"] = extra.get("ZETTA_VLA_DEVICE", "cpu")
-    data["command"] = " ".join(["python", *ROLLOUT_COMMAND, *cmd[len(ROLLOUT_COMMAND) + 1:]])
+    data["command"] = shlex.join(["python", *ROLLOUT_COMMAND, *cmd[len(ROLLOUT_COMMAND) + 1:]])
     if code is None:
         return StepResult("rollout", "timed out", seconds, limit, f"stopped at {limit:.0f} s (see rollout.log)", data)
     if code != 0 or not out.exists():
@@ -418,8 +421,6 @@ def rollout_step(args: argparse.Namespace, prof: Profile, info: dict[str, Any], 
 
 
 def scale_out_step(steps: dict[str, StepResult], results: Path) -> StepResult:
-    import gpu_report
-
     rollout = steps.get("rollout")
     if rollout is None or rollout.status != "ran":
         return StepResult("scale-out", "skipped", note="needs the rollout step's measurements")
@@ -510,8 +511,6 @@ def main(argv: list[str] | None = None) -> int:
             steps[name] = scale_out_step(steps, results)
         s = steps[name]
         log(f"{name}: {s.status} in {s.seconds:.0f} s{'; ' + s.note if s.note else ''}")
-    import gpu_report
-
     doc = {"started": started, "finished": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "command": "bench/gpu_check.sh " + " ".join(a for a in (argv if argv is not None else sys.argv[1:])
                                                      if not a.startswith("--setup-json") and "setup.json" not in a),

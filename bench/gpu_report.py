@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -173,7 +174,7 @@ def _render(data: dict[str, Any]) -> str:
         if "error" in r:
             rows.append([label, "failed: " + r["error"], "-", "-"])
             continue
-        on, off = sorted(r["on"])[len(r["on"]) // 2], sorted(r["off"])[len(r["off"]) // 2]
+        on, off = statistics.median(r["on"]), statistics.median(r["off"])
         rows.append([label, r["renderer"], _f(on, ".2f"), _f(off, ".2f")])
     if not rows:
         return "no figures"
@@ -181,9 +182,32 @@ def _render(data: dict[str, Any]) -> str:
             + _table(["backend", "OpenGL renderer", "reflections on", "reflections off"], rows))
 
 
+#: A stack point as `zetta bench rollout` logs it when it finishes.
+POINT_LINE = re.compile(r"stack c=(\d+): (\d+) episodes in ([\d.]+) s = ([\d.]+)/min, (\d+) steps/s .*?"
+                        r"p50 ([\d.]+) s, p99 ([\d.]+) s, batch ([\d.]+)")
+
+
+def logged_points(log: str) -> list[dict[str, float]]:
+    """The stack points a rollout logged before it was stopped (its JSON is written only at the end)."""
+    keys = ("concurrency", "episodes", "wall_s", "episodes_per_min", "steps_per_s", "p50_s", "p99_s", "batch_mean")
+    return [dict(zip(keys, map(float, m.groups()))) for m in POINT_LINE.finditer(log)]
+
+
+def _rollout_partial(data: dict[str, Any]) -> str:
+    points = data.get("logged_points", [])
+    if not points:
+        return "no stack point finished before the step was stopped"
+    rows = [[_f(p["concurrency"], ".0f"), _f(p["episodes"], ".0f"), _f(p["episodes_per_min"]), _f(p["steps_per_s"], ".0f"),
+             _f(p["p50_s"], ".2f"), _f(p["p99_s"], ".2f"), _f(p["batch_mean"])] for p in points]
+    return (f"`{data.get('command', '')}` was stopped at its time limit; the stack points it logged before:\n\n"
+            + _table(["conc.", "episodes", "episodes/min", "steps/s", "p50 s", "p99 s", "mean batch"], rows))
+
+
 def _rollout(data: dict[str, Any]) -> str:
     from zetta import bench_report
 
+    if "rows" not in data:
+        return _rollout_partial(data)
     res = _results(data)
     rows = []
     for r in res.rows:
