@@ -95,7 +95,7 @@ def scale_out_comparison(rollout: dict[str, Any], batch: Any, docs: Path) -> dic
     if batch is not None and batch.data.get("device", "").startswith("cuda"):
         gpu_ms = batch.data.get("ms", {}).get("fp32 (gpu)", {}).get("64")
     row("policy inference on the GPU, batch 64 (ms)", pred.get("gpu_batch_ms"), gpu_ms,
-        "PREDICTED in docs (ops x 10 us); measured by the batch step on the GPU (none: no GPU)")
+        "PREDICTED in docs (ops x 10 us); measured: the batch step's fp32 on the GPU (- without one)")
     if res.inference_ms:
         big = max(res.inference_ms)
         row(f"policy inference in the rollout's process, batch {big} (ms, {rollout.get('policy_device', 'cpu')})",
