@@ -40,6 +40,7 @@ import glob
 import json
 import os
 import platform
+import re
 import shlex
 import shutil
 import signal
@@ -380,7 +381,8 @@ def render_step(prof: Profile, info: dict[str, Any], results: Path, limit: float
             continue
         cmd = [info["python"], str(ROOT / "bench" / "bench_render.py"), "--child-backend", "--repeats",
                str(prof.render_repeats), "--n", str(prof.render_n), "--size", str(size), "--cameras", "agentview"]
-        code, text = run_child(cmd, left, child_env(extra), results / f"render-{label.split()[0]}.log")
+        slug = re.sub(r"[^a-z0-9]+", "-", label.lower()).strip("-")
+        code, text = run_child(cmd, left, child_env(extra), results / f"render-{slug}.log")
         lines = [line for line in text.splitlines() if line.startswith("RESULT ")]
         if code != 0 or not lines:
             data["backends"][label] = {"error": "timed out" if code is None else tail(text, 1)}
