@@ -19,6 +19,7 @@ import gpu_report  # noqa: E402
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-GPU path")
+@pytest.mark.timeout(420)
 def test_tiny_run_without_a_gpu_lists_its_skips_and_exits_0(tmp_path: Path) -> None:
     results = tmp_path / "results"
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "gpu_check.py"), "--profile", "tiny", "--no-install",
