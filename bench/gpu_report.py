@@ -43,6 +43,10 @@ def _results(rollout: dict[str, Any]) -> Any:
     return Results.from_json(rollout)
 
 
+def _mean_latency(row: Any) -> float:
+    return sum(e.latency_s for e in row.episodes) / max(len(row.episodes), 1)
+
+
 def latency_growth(rollout: dict[str, Any], low: int = 8, high: int = 32) -> dict[str, float] | None:
     """p50 and mean per-episode latency at ``high`` over ``low`` concurrency, and the Little's-law floor."""
     from zetta import bench_report
@@ -51,8 +55,7 @@ def latency_growth(rollout: dict[str, Any], low: int = 8, high: int = 32) -> dic
     a, b = bench_report._row(res, "stack", low), bench_report._row(res, "stack", high)
     if not (a and b and a.episodes and b.episodes):
         return None
-    mean = lambda r: sum(e.latency_s for e in r.episodes) / len(r.episodes)  # noqa: E731
-    return {"p50_ratio": b.latency(50) / a.latency(50), "mean_ratio": mean(b) / mean(a),
+    return {"p50_ratio": b.latency(50) / a.latency(50), "mean_ratio": _mean_latency(b) / _mean_latency(a),
             "floor": bench_report.latency_growth_floor(res, low, high) or math.nan}
 
 
@@ -214,7 +217,7 @@ def _rollout(data: dict[str, Any]) -> str:
     for r in res.rows:
         if r.mode != "stack":
             continue
-        mean = sum(e.latency_s for e in r.episodes) / max(len(r.episodes), 1)
+        mean = _mean_latency(r)
         rows.append([str(r.concurrency), str(len(r.episodes)), _f(r.episodes_per_min), _f(r.steps_per_s, ".0f"),
                      _f(mean, ".2f"), _f(r.latency(50), ".2f"), _f(r.latency(99), ".2f"), _f(r.batch_mean),
                      _f(r.usage.own_cpu_pct if r.usage else None, ".0f"),
