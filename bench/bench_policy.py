@@ -91,14 +91,16 @@ def print_traced(res: dict) -> None:
         print(f"{b:>5} | {r['eager']:>9.2f} {r['traced']:>9.2f} | {r['eager'] / r['traced']:>6.2f}x")
 
 
-async def open_loop(server, instruction: str, rate: float, duration: float, seed: int = 1) -> dict:
+async def open_loop(server, instruction: str, rate: float, duration: float, seed: int = 1,
+                    inputs: list[dict[str, np.ndarray]] | None = None) -> dict:
+    """Poisson arrivals at ``rate``/s for ``duration`` s; ``inputs`` (default: 64 state samples) in turn."""
     rng = np.random.default_rng(seed)
-    inputs = sample_inputs(64)
+    inputs = inputs or sample_inputs(64)
     lat, tasks, rejected, errors = [], [], [0], {}
 
     async def one(i: int) -> None:
         t = time.monotonic()
-        item = InferItem(f"r{seed}-{i}", "m", inputs[i % 64], instruction, deadline=t + SLO, arrival=t)
+        item = InferItem(f"r{seed}-{i}", "m", inputs[i % len(inputs)], instruction, deadline=t + SLO, arrival=t)
         try:
             await server.submit(item)
             lat.append(time.monotonic() - t)

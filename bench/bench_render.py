@@ -154,18 +154,20 @@ def bench_steps(repeats: int, steps: int) -> dict[str, list[float]]:
 # Backends (one child process each)
 
 
-def child_backend(repeats: int, n: int) -> None:
-    """Runs in a child: the 2-camera 128 observation, reflections on/off; prints JSON."""
+def child_backend(repeats: int, n: int, size: int = 128, cameras: Sequence[str] = TWO) -> None:
+    """Runs in a child: one observation of ``cameras`` at ``size``, reflections on/off; prints JSON
+    (ms per observation; bench/gpu_check.py runs it with one camera, so per frame)."""
     from services.env_worker.rendering import gl_backend_choice, gl_renderer_string
 
-    _, slot = open_slot("libero", libero_config(128))
+    _, slot = open_slot("libero", libero_config(size, cameras))
     renderer = slot.renderer
     refl = Reflections(renderer.scene().model)
-    out: dict[str, Any] = {"backend": gl_backend_choice().backend, "renderer": gl_renderer_string(), "on": [], "off": []}
+    out: dict[str, Any] = {"backend": gl_backend_choice().backend, "renderer": gl_renderer_string(),
+                           "size": size, "cameras": list(cameras), "on": [], "off": []}
     for _ in range(repeats):
         for on in (True, False):
             refl.set(on)
-            out["on" if on else "off"].append(time_ms(lambda: renderer.render(TWO), n))
+            out["on" if on else "off"].append(time_ms(lambda: renderer.render(cameras), n))
     print("RESULT " + json.dumps(out))
 
 
@@ -211,11 +213,13 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=0, help="rounds per measurement (default 5, quick 3)")
     p.add_argument("--n", type=int, default=0, help="timed renders per point and round (default 5, quick 3)")
     p.add_argument("--child-backend", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--size", type=int, default=128, help=argparse.SUPPRESS)
+    p.add_argument("--cameras", default=",".join(TWO), help=argparse.SUPPRESS)
     args = p.parse_args()
     repeats = args.repeats or (3 if args.quick else 5)
     n = args.n or (3 if args.quick else 5)
     if args.child_backend:
-        child_backend(repeats, n)
+        child_backend(repeats, n, args.size, args.cameras.split(","))
         return
 
     from services.env_worker.rendering import gl_backend_choice, gl_renderer_string
