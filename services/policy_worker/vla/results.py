@@ -114,7 +114,7 @@ def render(doc: dict) -> str:
         "`python -m services.policy_worker.vla.results`; do not edit by hand.",
         "",
         f"- model `{doc['model']}`, checkpoint `{doc['checkpoint']}` (model.pt sha256 `{doc['checkpoint_sha256'][:16]}...`)",
-        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, wall time of the last invocation {doc['wall_s'] / 60:.0f} min",
+        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, evaluation time about {doc['wall_s'] / 60:.0f} min",
         f"- command: `{doc['command']}`",
         f"- {doc['execute_steps']} actions of each 8-action chunk run per policy call",
         f"- the checkpoint was trained on init states {_ranges(doc['training_init_states'].get('libero_goal', []))} "
