@@ -9,6 +9,7 @@ from __future__ import annotations
 import pytest
 
 from services.common.config import ConfigError, EnvReader
+from services.common.policies import DEFAULT_POLICY
 from services.common.cpus import usable_cpus
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.policy_client import InferHold
@@ -171,7 +172,7 @@ def test_env_worker_rejects_malformed_gateway_address() -> None:
 def test_policy_worker_defaults_and_scheduler() -> None:
     """The shipped model is the default; the queue delay is converted from ms to seconds."""
     cfg = PolicyWorkerConfig.from_env({"ZETTA_MAX_BATCH": "8", "ZETTA_MAX_QUEUE": "16", "ZETTA_MAX_QUEUE_DELAY_MS": "5"})
-    assert cfg.models == ("scripted-pick-place",)
+    assert cfg.models == (DEFAULT_POLICY,)
     assert cfg.scheduler.max_batch == 8
     assert cfg.scheduler.max_queue == 16
     assert cfg.scheduler.max_queue_delay == pytest.approx(0.005)
