@@ -51,7 +51,9 @@ async def drive(address: str, slots_total: int) -> Traffic:
         await group.reset(seed=list(range(slots_total)))
         running = group
         while len(running):
-            results = await running.policy_step()
+            # The compose stack serves the image VLA first; these Lift sessions render no camera,
+            # so they ask for the scripted policy it serves beside it (the wiring is the subject).
+            results = await running.policy_step(model="scripted-pick-place")
             out.policy_step_calls += 1
             for r in results:
                 if r.done:

@@ -240,7 +240,8 @@ def hosts() -> Iterator[Hosts]:
                     ZETTA_HEARTBEAT_INTERVAL_MS=str(HEARTBEAT_INTERVAL_MS),
                     ZETTA_HEARTBEAT_TIMEOUT_MS=str(HEARTBEAT_TIMEOUT_MS))
         hosts.start("policy", "a", [sys.executable, "-m", "services.policy_worker.main"],
-                    ZETTA_BIND_HOST=a, ZETTA_POLICY_WORKER_PORT="50071", ZETTA_METRICS_PORT="-1")
+                    ZETTA_BIND_HOST=a, ZETTA_POLICY_WORKER_PORT="50071", ZETTA_METRICS_PORT="-1",
+                    ZETTA_MODELS="scripted-pick-place")  # state-only Lift sessions: no camera to serve the VLA
         for _ in range(50):  # redis answers before the gateway's start-up PING
             ping = _sh("ip", "netns", "exec", net.ns("a"), "redis-cli", "-p", "6379", "ping", check=False)
             if ping.stdout.strip() == "PONG":
