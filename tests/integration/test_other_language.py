@@ -51,7 +51,8 @@ def _env(tmp: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def small_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
-    with LocalStack(env_workers=1, slots=2, policy_workers=1, families=("robosuite",),
+    # Lift sessions render no camera: the scripted policy answers their policy steps.
+    with LocalStack(env_workers=1, slots=2, policy_workers=1, families=("robosuite",), models=("scripted-pick-place",),
                     workdir=tmp_path_factory.mktemp("stack"), extra_env={"ZETTA_LOG_LEVEL": "WARNING"}) as s:
         yield s
 
