@@ -1,12 +1,13 @@
 # Two commands do all set-up on a fresh machine:
-#   make demo   the whole stack on this machine, 16 concurrent LIBERO-Goal episodes, a summary
+#   make demo   the whole stack on this machine: the frozen policy on a LIBERO-PRO task bare, under a
+#               shipped harness, and that harness around a do-nothing policy, on the same seeds
 #   make test   the default test suite (what CI runs)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.zetta-installed
 
-.PHONY: setup proto demo up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim lint clean
+.PHONY: setup proto demo demo-throughput up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim lint clean
 
 setup: $(STAMP) proto $(VENV)/.zetta-validators $(VENV)/.zetta-interop
 
@@ -34,6 +35,10 @@ proto: $(STAMP)
 
 demo: setup
 	$(VENV)/bin/zetta up --demo
+
+# The infrastructure demo: 16 concurrent LIBERO-Goal episodes, success, episodes/min, per-hop latency.
+demo-throughput: setup
+	$(VENV)/bin/zetta up --demo throughput
 
 up: setup
 	$(VENV)/bin/zetta up

@@ -1,9 +1,13 @@
 """The `zetta` command line.
 
-  zetta up --demo              start Redis + gateway + 2 env workers + 1 policy worker on loopback,
-                               run 16 concurrent LIBERO-Goal episodes, print a summary, stop
+  zetta up --demo              start Redis + gateway + 2 env workers + 1 policy worker + critic on
+                               loopback; run the frozen policy on a LIBERO-PRO task bare, under a
+                               shipped harness, and that harness around a do-nothing policy (the
+                               control), on the same seeds; print the three rows; stop
+  zetta up --demo throughput   the infrastructure demo: 16 concurrent LIBERO-Goal episodes, per-hop latency
   zetta up                     start the same stack and keep it up until Ctrl-C
-  zetta demo --gateway ADDR    run the demo against a stack that is already up
+  zetta demo [mission|throughput] --gateway ADDR
+                               run a demo against a stack that is already up
   zetta workers|sessions --gateway ADDR
   zetta train [--variant state|image] [--data DEMOS.npz ...]
                                oracle demos (clean + DART) on LIBERO-Goal, train the Zetta VLA, DAgger
@@ -29,6 +33,7 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, policy_env_config
 from zetta.client import Gateway, SessionGroup
@@ -140,10 +145,36 @@ def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
     print_hops(metrics_urls)
 
 
+def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequence[str]) -> None:
+    """The mission demo (default) or the throughput demo, against the gateway at ``address``."""
+    if args.demo == "throughput":
+        res = asyncio.run(run_demo(address, args.episodes or 16, args.suite or "libero_goal", args.task or DEFAULT_TASK,
+                                   args.mode, args.max_steps, args.model, args.execute_steps))
+        report(res, metrics_urls)
+        return
+    from services.ops.mission_demo import MissionSpec, run_mission, summary
+
+    spec = MissionSpec(model=args.model, execute_steps=args.execute_steps, seeds=tuple(range(args.episodes or 10)))
+    spec.suite, spec.task = args.suite or spec.suite, args.task or spec.task
+    if args.harness:
+        spec.harness_dir = Path(args.harness)
+    print(f"mission demo: {len(spec.seeds)} seeds x 3 conditions (bare, harness, do-nothing control) ...", flush=True)
+    print()
+    print(summary(asyncio.run(run_mission(address, spec))))
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from services.ops.local_stack import LocalStack
 
-    stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1, models=(args.model,))
+    models: tuple[str, ...] = (args.model,)
+    extra_env: dict[str, str] = {}
+    if args.demo == "mission":
+        models += ("do-nothing",)
+        videos = Path("out/demo/videos").resolve()
+        videos.mkdir(parents=True, exist_ok=True)
+        extra_env["ZETTA_VIDEO_DIR"] = str(videos)
+    stack = LocalStack(env_workers=args.env_workers, slots=args.slots, policy_workers=1, models=models,
+                       extra_env=extra_env)
     print(f"starting redis, gateway, {args.env_workers} env workers x {args.slots} slots, 1 policy worker ...",
           flush=True)
     t = time.perf_counter()
@@ -154,9 +185,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         for svc in stack.services.values():
             print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
         if args.demo:
-            res = asyncio.run(run_demo(stack.gateway_address, args.episodes, args.suite, args.task, args.mode,
-                                       args.max_steps, args.model, args.execute_steps))
-            report(res, [s.metrics_url for s in stack.services.values()])
+            run_chosen_demo(args, stack.gateway_address, [s.metrics_url for s in stack.services.values()])
         else:
             print("Ctrl-C to stop")
             # sigwait needs the signals blocked: an unblocked SIGTERM (kill, docker stop) would
@@ -175,9 +204,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    res = asyncio.run(run_demo(args.gateway, args.episodes, args.suite, args.task, args.mode, args.max_steps,
-                               args.model, args.execute_steps))
-    report(res, args.metrics or [])
+    run_chosen_demo(args, args.gateway, args.metrics or [])
     return 0
 
 
@@ -204,9 +231,12 @@ def cmd_sessions(args: argparse.Namespace) -> int:
 
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--episodes", type=int, default=16, help="concurrent episodes (default 16)")
-    p.add_argument("--suite", default="libero_goal", help="LIBERO suite (default libero_goal)")
-    p.add_argument("--task", default=DEFAULT_TASK, help=f"task name or index (default {DEFAULT_TASK})")
+    p.add_argument("--episodes", type=int, default=0,
+                   help="mission: seeds per condition (default 10); throughput: concurrent episodes (default 16)")
+    p.add_argument("--suite", default="", help="LIBERO suite (mission: libero_goal_swap; throughput: libero_goal)")
+    p.add_argument("--task", default="", help=f"task name or index (default {DEFAULT_TASK})")
+    p.add_argument("--harness", default="", help="mission: harness package directory "
+                   "(default examples/harnesses/libero-goal-pick-place)")
     p.add_argument("--mode", choices=("policy_step", "run_episode"), default="policy_step",
                    help="client-driven policy_step loop (default) or whole episodes inside the workers")
     p.add_argument("--max-steps", type=int, default=0, help="step budget per episode (default: the suite's)")
@@ -243,12 +273,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     sub = parser.add_subparsers(dest="cmd", required=True)
     up = sub.add_parser("up", help="run the whole stack on this machine")
-    up.add_argument("--demo", action="store_true", help="run the demo episodes, print a summary and stop")
+    up.add_argument("--demo", nargs="?", const="mission", choices=("mission", "throughput"),
+                    help="run a demo, print its summary and stop (default: mission)")
     up.add_argument("--env-workers", type=int, default=2)
     up.add_argument("--slots", type=int, default=8, help="slots per env worker")
     _demo_args(up)
     up.set_defaults(func=cmd_up)
-    demo = sub.add_parser("demo", help="run the demo against a running gateway")
+    demo = sub.add_parser("demo", help="run a demo against a running gateway (it must serve do-nothing too)")
+    demo.add_argument("demo", nargs="?", default="mission", choices=("mission", "throughput"))
     demo.add_argument("--gateway", default="127.0.0.1:50051")
     demo.add_argument("--metrics", nargs="*", help="/metrics URLs to read hop latency from")
     _demo_args(demo)

@@ -46,6 +46,16 @@ class TrainConfig:
     checkpoint_every: int = 1000
 
 
+#: Knobs that change how fast a run goes, not what it learns: a stage or a resume point made with
+#: other values is still the same training.
+RUNTIME_KNOBS = ("threads",)
+
+
+def learning_config(cfg: TrainConfig) -> dict:
+    """The training configuration that decides the weights (``RUNTIME_KNOBS`` left out)."""
+    return {k: v for k, v in asdict(cfg).items() if k not in RUNTIME_KNOBS}
+
+
 def load_demos(paths: list[str]) -> dict:
     parts = [np.load(p, allow_pickle=False) for p in paths]
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("states", "actions", "episode_lengths", "instructions")}
@@ -87,7 +97,7 @@ class Resume:
 
     def __init__(self, out_dir: str, cfg: TrainConfig, model_cfg: VLAConfig, init: str) -> None:
         self.path = Path(str(out_dir).rstrip("/") + ".resume.pt")
-        self.key = json.dumps({"train": asdict(cfg), "model": model_cfg.to_dict(), "init": init}, sort_keys=True)
+        self.key = json.dumps({"train": learning_config(cfg), "model": model_cfg.to_dict(), "init": init}, sort_keys=True)
         self.seconds = 0.0
         self.losses: list[float] = []
 
@@ -319,7 +329,7 @@ def finished_stage(out_dir: str, data: list[str], cfg: TrainConfig, init: str) -
         return None
     meta = json.loads(path.read_text())
     training = meta.get("training", {})
-    want = {**asdict(cfg), "init": init}
+    want = {**learning_config(cfg), "init": init}
     if meta.get("data", {}).get("files") != [str(p) for p in data] or any(training.get(k) != v for k, v in want.items()):
         return None
     return meta if training.get("steps_done") == cfg.steps else None
@@ -353,11 +363,14 @@ def main(argv=None) -> int:
     p.add_argument("--image-size", type=int, default=64)
     p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data)")
     p.add_argument("--lr", type=float, default=PipelineConfig.lr)
+    p.add_argument("--threads", type=int, default=TrainConfig.threads,
+                   help="torch intra-op threads for training (1 leaves cores to the env processes)")
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
     model_cfg = VLAConfig(image_size=image_size)
-    train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr)
+    train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr,
+                            threads=a.threads)
     if a.data:
         train(list(a.data), out, model_cfg, train_cfg, init=a.init)
         return 0
