@@ -13,7 +13,6 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass
 
 import grpc
 import numpy as np
@@ -21,10 +20,12 @@ from google.protobuf import json_format
 
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
+from services.common.primitives import check_motion
 from services.common.spec_codec import spec_to_wire
 from zetta_wire.codec import TensorDecodeError, decode, encode, encode_observation
-from services.env_worker import harness_loop, metrics
-from services.env_worker.families import ResetError, ResetSpec, Slot, StepOutcome
+from services.env_worker import harness_loop, metrics, primitives
+from services.env_worker.chunks import ChunkRun, run_chunk, step_result
+from services.env_worker.families import ResetError, ResetSpec, Slot
 from services.env_worker.policy_client import PolicyClient
 from services.env_worker.slots import BoundSlot, Episode, SlotTable, action_spec_check, new_episode_id
 from services.env_worker.video import VideoError
@@ -36,82 +37,6 @@ log = logging.getLogger(__name__)
 def _timed(method: str):
     """Env worker hop latency of every call (grpc_errors.timed_unary)."""
     return timed_unary("env_worker", method)
-
-
-@dataclass
-class ChunkRun:
-    """What executing one chunk did: the last step's outcome (its observation is the chunk's
-    last), the actions executed, their summed reward, and how many a recovery chose."""
-
-    outcome: StepOutcome
-    actions: np.ndarray
-    reward: float
-    truncated: bool
-    by_recovery: int
-
-
-def _run_chunk(slot: BoundSlot, chunk: np.ndarray) -> ChunkRun:
-    """Execute a chunk on the slot's thread, stopping at the end of the episode. RunEpisodes reads
-    only the reward and the end of the episode from it, so nothing is encoded here."""
-    episode = slot.episode
-    assert episode is not None
-    env = slot.env
-    family = slot.family_name
-    step_hist = metrics.STEP_SECONDS.labels(family)
-    reward = 0.0
-    executed = 0
-    outcome = None
-    last = len(chunk) - 1
-    by_recovery = 0
-    if slot.harness is not None:  # critics at every step; a recovery's actions replace the policy's
-        outcome, chunk, reward, by_recovery = slot.harness.run_chunk(env, chunk, episode.max_steps, step_hist)
-        executed = len(chunk)
-    else:
-        for i, action in enumerate(chunk):
-            start = time.perf_counter()
-            # Only the observation this call returns is built: the one after the chunk's last action
-            # (the steps before it keep reward, success, milestones and signal state up to date).
-            outcome = env.step(action, observe=i == last)
-            step_hist.observe(time.perf_counter() - start)
-            reward += outcome.reward
-            executed += 1
-            if outcome.terminated or outcome.truncated or env.episode_step >= episode.max_steps:
-                break
-    assert outcome is not None
-    if executed - 1 != last:  # the episode ended inside the chunk: build its final observation
-        outcome.observation = env.observe()
-    metrics.STEPS.labels(family).inc(executed)
-    truncated = outcome.truncated or (env.episode_step >= episode.max_steps and not outcome.terminated)
-    if outcome.terminated or truncated:
-        episode.ended = True
-        episode.success = outcome.success
-        metrics.EPISODES.labels(family, "success" if outcome.success else "failure").inc()
-        if slot.harness is not None:
-            slot.harness.end_episode(outcome.success)
-    slot.last_obs = outcome.observation
-    return ChunkRun(outcome, chunk[:executed], reward, truncated, by_recovery)
-
-
-def _step_result(slot: BoundSlot, run: ChunkRun) -> types_pb2.StepResult:
-    """The wire form of a chunk's run (on the slot's thread: encoding the observation is copy work)."""
-    env, outcome = slot.env, run.outcome
-    result = types_pb2.StepResult(
-        session_id=slot.session_id,
-        reward=run.reward,
-        terminated=outcome.terminated,
-        truncated=run.truncated,
-        success=outcome.success,
-        episode_step=env.episode_step,
-        info=outcome.info,
-        video_path=outcome.video_path,
-        first_missing_milestone=env.first_missing_milestone(),
-        milestones_reached=env.milestones_reached(),
-    )
-    encode(run.actions, result.executed_actions)
-    encode_observation(outcome.observation, result.observation)
-    if slot.harness is not None:
-        slot.harness.annotate(result, run.by_recovery)
-    return result
 
 
 def _milestone_report(env: Slot) -> tuple[list[str], list[str], str]:
@@ -250,6 +175,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             instruction=spec.instruction or instruction,
             max_steps=slot.family.max_episode_steps(spec.task),
         )
+        episode.perception = primitives.episode_perception(obs, episode.instruction)
         slot.episode = episode
         slot.last_obs = obs
         metrics.RESETS.labels(slot.family_name).inc()
@@ -301,11 +227,33 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         results = await asyncio.gather(*(s.run(self._execute, s, c) for s, c in zip(slots, chunks)))
         return env_worker_pb2.StepSlotsResponse(results=results)
 
+    @_timed("PerceiveSlots")
+    async def PerceiveSlots(self, request, context) -> env_worker_pb2.PerceiveSlotsResponse:
+        slots = self.table.get(list(request.session_ids))
+        for slot in slots:
+            slot.require_episode()
+        queries, grasps = list(request.queries), request.grasps
+        results = await asyncio.gather(*(s.run(primitives.perceive, s, queries, grasps) for s in slots))
+        return env_worker_pb2.PerceiveSlotsResponse(results=results)
+
+    @_timed("MoveSlots")
+    async def MoveSlots(self, request, context) -> env_worker_pb2.MoveSlotsResponse:
+        sids = list(request.session_ids)
+        slots = self.table.get(sids)
+        if len(request.motions) != len(sids):
+            raise ge.invalid(f"expected one motion per session ({len(sids)}), got {len(request.motions)}")
+        for slot, motion in zip(slots, request.motions):
+            slot.require_episode()
+            primitives.require_no_harness(slot)
+            check_motion(slot.session_id, motion)
+        results = await asyncio.gather(*(s.run(primitives.move, s, m) for s, m in zip(slots, request.motions)))
+        return env_worker_pb2.MoveSlotsResponse(results=results)
+
     @staticmethod
     def _execute(slot: BoundSlot, chunk: np.ndarray) -> types_pb2.StepResult:
         """Execute a chunk on the slot's thread, stopping at the end of the episode; the StepResult
         a StepSlots or PolicyStepSlots caller reads."""
-        return _step_result(slot, _run_chunk(slot, chunk))
+        return step_result(slot, run_chunk(slot, chunk))
 
     # ---- policy ------------------------------------------------------------------------------
 
@@ -401,7 +349,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
                 calls += asked
                 remaining = budget - (slot.env.episode_step - first_step)
                 n = policy.execute_steps if policy.execute_steps > 0 else len(chunk)
-                last = await slot.run(_run_chunk, slot, chunk[: min(n, remaining)])
+                last = await slot.run(run_chunk, slot, chunk[: min(n, remaining)])
                 reward += last.reward
             # The summary's video is complete: one that the budget cut short is finished here.
             video_path = await slot.run(slot.env.finish_video)

@@ -35,6 +35,8 @@ class Episode:
     max_steps: int
     ended: bool = False
     success: bool = False
+    #: The episode's perception tool for Perceive (services/env_worker/primitives.py), seeded at reset.
+    perception: Any = None
 
 
 class SlotActivity:

@@ -21,6 +21,7 @@ from google.protobuf import json_format
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
+from services.common.primitives import check_motion, check_queries
 from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
 from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
@@ -375,6 +376,37 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
             return (await stub.StepSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
 
         return gateway_pb2.ActionStepResponse(results=await self._fan_out(records, call))
+
+    # ---- the harness's tools ---------------------------------------------------------------
+
+    @_timed("Perceive")
+    async def Perceive(self, request, context) -> gateway_pb2.PerceiveResponse:
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+        queries = check_queries(request.queries)
+
+        async def call(stub, idx: list[int]):
+            req = env_worker_pb2.PerceiveSlotsRequest(session_ids=[sids[i] for i in idx], queries=queries,
+                                                      grasps=request.grasps)
+            return (await stub.PerceiveSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.PerceiveResponse(results=await self._fan_out(records, call))
+
+    @_timed("Move")
+    async def Move(self, request, context) -> gateway_pb2.MoveResponse:
+        sids = list(request.session_ids)
+        records = await self._resolve(sids)
+        if len(request.motions) != len(sids):
+            raise ge.invalid(f"motions: expected one per session ({len(sids)}), got {len(request.motions)}")
+        for sid, motion in zip(sids, request.motions):
+            check_motion(sid, motion)
+        motions = list(request.motions)
+
+        async def call(stub, idx: list[int]):
+            req = env_worker_pb2.MoveSlotsRequest(session_ids=[sids[i] for i in idx], motions=[motions[i] for i in idx])
+            return (await stub.MoveSlots(req, timeout=self._timeout(self.cfg.step_timeout_ms))).results
+
+        return gateway_pb2.MoveResponse(results=await self._fan_out(records, call))
 
     # ---- policy execution -----------------------------------------------------------------
 

@@ -1,8 +1,10 @@
 """Zetta Python SDK: sessions, episodes and steps over the gateway, batched across sessions."""
 
 from zetta.client import (
+    Detection,
     EpisodeSummary,
     Gateway,
+    PerceiveResult,
     ResetResult,
     Session,
     SessionGroup,
@@ -13,8 +15,10 @@ from zetta.client import (
 from zetta.sync import SyncGateway
 
 __all__ = [
+    "Detection",
     "EpisodeSummary",
     "Gateway",
+    "PerceiveResult",
     "ResetResult",
     "Session",
     "SessionGroup",

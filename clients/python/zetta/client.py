@@ -152,6 +152,51 @@ class HarnessReport:
         return self.policy_actions / total if total else 1.0
 
 
+@dataclass
+class Grasp:
+    """A grasp proposal: the grip point (world, m) and the horizontal axis the fingers close along (0 = x, 1 = y)."""
+
+    grip_point: np.ndarray
+    finger_axis: int
+
+
+@dataclass
+class Detection:
+    """One perception estimate: a noisy centre and box (world, m), as a detector reports them."""
+
+    query: str
+    position: np.ndarray
+    box: np.ndarray
+    #: Grasp proposals on the box, best first (for "object", when asked).
+    grasps: list[Grasp] = field(default_factory=list)
+
+
+@dataclass
+class PerceiveResult:
+    """What the perception tool saw in one session: detections that found something (a miss is absent)."""
+
+    session_id: str
+    episode_id: str
+    episode_step: int
+    detections: list[Detection]
+
+    def first(self, query: str) -> Detection | None:
+        """The first detection for ``query`` ("object", "target", "others"), None when it missed."""
+        return next((d for d in self.detections if d.query == query), None)
+
+
+def _perceive_result(m: types_pb2.PerceiveResult) -> PerceiveResult:
+    return PerceiveResult(m.session_id, m.episode_id, m.episode_step, [
+        Detection(d.query, np.array(d.position), np.array(d.box),
+                  [Grasp(np.array(g.grip_point), g.finger_axis) for g in d.grasps]) for d in m.detections])
+
+
+def _motion(position: Sequence[float] | np.ndarray | None, gripper: float, max_steps: int, tolerance_m: float,
+            hand_down: bool, max_action: float) -> types_pb2.Motion:
+    return types_pb2.Motion(position=[] if position is None else [float(v) for v in position], gripper=gripper,
+                            max_steps=max_steps, tolerance_m=tolerance_m, hand_down=hand_down, max_action=max_action)
+
+
 def _harness_report(m: types_pb2.HarnessReport | None) -> HarnessReport | None:
     if m is None or not m.harness:
         return None
@@ -411,6 +456,23 @@ class SessionGroup:
         )
         return [_summary(s) for s in resp.summaries]
 
+    async def perceive(self, queries: Sequence[str] = (), grasps: bool = False) -> list[PerceiveResult]:
+        """The perception tool on each session's current state: noisy boxes of the stage's "object",
+        its "target" and the "others" (default: object and target), with grasp proposals if asked."""
+        resp = await self.gateway.call("Perceive", gateway_pb2.PerceiveRequest(session_ids=self.ids, queries=list(queries),
+                                                                               grasps=grasps))
+        return [_perceive_result(r) for r in resp.results]
+
+    async def move(self, positions: Sequence[Sequence[float] | np.ndarray | None] | None = None, gripper: float = 0.0,
+                   max_steps: int = 20, tolerance_m: float = 0.0, hand_down: bool = False,
+                   max_action: float = 0.0) -> list[StepResult]:
+        """A bounded closed-loop motion in each session: servo the grip site to ``positions[i]`` (None or
+        omitted: hold) with the gripper command (-1 open, +1 close, 0 keep) for at most ``max_steps``."""
+        goals = list(positions) if positions is not None else [None] * len(self)
+        motions = [_motion(p, gripper, max_steps, tolerance_m, hand_down, max_action) for p in goals]
+        resp = await self.gateway.call("Move", gateway_pb2.MoveRequest(session_ids=self.ids, motions=motions))
+        return [_step_result(r) for r in resp.results]
+
     async def renew(self, lease_seconds: int = 0) -> None:
         """Push the leases out."""
         await self.gateway.call("RenewSessions", gateway_pb2.RenewSessionsRequest(session_ids=self.ids,
@@ -454,6 +516,18 @@ class Session:
         group = SessionGroup(self.gateway, [types_pb2.SessionInfo(session_id=self.session_id)])
         return (await group.run_episode(task, seed, init_state_index, model, max_steps, execute_steps, record_video,
                                         harness, harness_dir))[0]
+
+    async def perceive(self, queries: Sequence[str] = (), grasps: bool = False) -> PerceiveResult:
+        """The perception tool on the current state (SessionGroup.perceive)."""
+        req = gateway_pb2.PerceiveRequest(queries=list(queries), grasps=grasps)
+        return _perceive_result(await self.gateway._batcher.submit("Perceive", self.session_id, req))
+
+    async def move(self, position: Sequence[float] | np.ndarray | None = None, gripper: float = 0.0,
+                   max_steps: int = 20, tolerance_m: float = 0.0, hand_down: bool = False,
+                   max_action: float = 0.0) -> StepResult:
+        """A bounded closed-loop motion (SessionGroup.move)."""
+        motion = _motion(position, gripper, max_steps, tolerance_m, hand_down, max_action)
+        return _step_result(await self.gateway._batcher.submit("Move", self.session_id, motion))
 
     def stream(self) -> "StepStream":
         """A bidirectional stream for this session's step loop: one stream instead of a call per step."""
@@ -520,9 +594,12 @@ class _Batcher:
         "Reset": lambda ids, payloads: gateway_pb2.ResetRequest(session_ids=ids, specs=payloads),
         "ActionStep": lambda ids, payloads: gateway_pb2.ActionStepRequest(session_ids=ids, actions=payloads),
         "PolicyStep": lambda ids, payloads: gateway_pb2.PolicyStepRequest(session_ids=ids, policy=payloads[0]),
+        "Perceive": lambda ids, payloads: gateway_pb2.PerceiveRequest(session_ids=ids, queries=payloads[0].queries,
+                                                                      grasps=payloads[0].grasps),
+        "Move": lambda ids, payloads: gateway_pb2.MoveRequest(session_ids=ids, motions=payloads),
     }
     #: Calls whose payload is shared by the whole batch must agree on it to be merged.
-    _SHARED = {"PolicyStep"}
+    _SHARED = {"PolicyStep", "Perceive"}
 
     def __init__(self, gateway: Gateway) -> None:
         self._gateway = gateway

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.primitives import QUERIES
+
 #: Floats per object in LIBERO's ``object_state``: pos, quat, pos and quat relative to the eef.
 OBJECT_STATE_STRIDE = 14
-#: What the tool answers to.
-QUERIES = ("object", "target", "others")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,82 @@
+"""The harness's tools through the gateway: Perceive (noisy estimates, grasp proposals) and Move
+(a bounded closed-loop motion), batched across sessions, with bad input refused by name."""
+
+from __future__ import annotations
+
+import grpc
+import numpy as np
+import pytest
+
+from tests.conftest import LIFT
+from zetta.client import ZettaError
+from zetta_wire.v1 import gateway_pb2, types_pb2
+
+
+def _centre(box: np.ndarray) -> np.ndarray:
+    return (np.asarray(box[:3]) + np.asarray(box[3:])) / 2
+
+
+async def test_perceive_estimates_the_cube_near_but_not_at_its_true_pose(gw) -> None:
+    group = await gw.create_sessions(env_family="robosuite", n=2, env_config=LIFT)
+    await group.reset(seed=[1, 2])
+    exact = [_centre(o["task_object_bbox"]) for o in await group.observe()]
+    found = 0
+    for _ in range(5):  # the detector misses now and then (its dropout): count what it found
+        for res, truth in zip(await group.perceive(grasps=True), exact):
+            obj = res.first("object")
+            if obj is None:
+                continue
+            found += 1
+            error = float(np.linalg.norm(obj.position - truth))
+            assert 0.0 < error < 0.05, error  # an estimate: close, never the simulator's exact pose
+            assert obj.box.shape == (6,) and np.all(obj.box[3:] > obj.box[:3])
+            assert obj.grasps and obj.grasps[0].grip_point.shape == (3,) and obj.grasps[0].finger_axis in (0, 1)
+            assert res.episode_step == 0
+    assert found >= 6
+
+
+async def test_move_servos_the_grip_site_above_the_cube_in_bounded_steps(gw) -> None:
+    group = await gw.create_sessions(env_family="robosuite", n=2, env_config=LIFT)
+    await group.reset(seed=[3, 4])
+    cubes = [_centre(o["task_object_bbox"]) for o in await group.observe()]
+    goals = [c + np.array([0.0, 0.0, 0.08]) for c in cubes]
+    results = await group.move(goals, gripper=-1.0, max_steps=60, tolerance_m=0.01)
+    for res, goal in zip(results, goals):
+        n = res.executed_actions.shape[0]
+        assert 1 <= n <= 60 and res.episode_step == n
+        assert np.all(res.executed_actions[:, 6] == -1.0)
+        assert np.linalg.norm(res.observation["robot0_eef_pos"] - goal) < 0.02
+    held = await group[0].move(None, gripper=1.0, max_steps=3)
+    # Holding: all three steps run, the gripper closes, the servo only corrects drift.
+    assert held.executed_actions.shape == (3, 7) and np.all(held.executed_actions[:, 6] == 1.0)
+    assert np.abs(held.executed_actions[:, :3]).max() < 0.2
+
+
+async def test_bad_tool_requests_are_refused_by_name(gw) -> None:
+    group = await gw.create_sessions(env_family="robosuite", n=1, env_config=LIFT)
+    sid = group.ids[0]
+    with pytest.raises(ZettaError) as err:
+        await group.perceive()
+    assert err.value.code == grpc.StatusCode.FAILED_PRECONDITION and sid in err.value.details
+    await group.reset(seed=0)
+    with pytest.raises(ZettaError) as err:
+        await group.perceive(["object", "cube"])
+    assert err.value.code == grpc.StatusCode.INVALID_ARGUMENT and "known: object, target, others" in err.value.details
+    bad_motions = [
+        (types_pb2.Motion(position=[0.1, 0.2], max_steps=5), "position"),
+        (types_pb2.Motion(position=[0.1, float("nan"), 1.0], max_steps=5), "position"),
+        (types_pb2.Motion(max_steps=0), "max_steps"),
+        (types_pb2.Motion(max_steps=101), "max_steps"),
+        (types_pb2.Motion(max_steps=5, gripper=2.0), "gripper"),
+        (types_pb2.Motion(max_steps=5, max_action=-0.5), "max_action"),
+    ]
+    for motion, field in bad_motions:
+        with pytest.raises(ZettaError) as err:
+            await gw.call("Move", gateway_pb2.MoveRequest(session_ids=[sid], motions=[motion]))
+        assert err.value.code == grpc.StatusCode.INVALID_ARGUMENT, motion
+        assert field in err.value.details and sid in err.value.details and err.value.session_ids == [sid]
+    with pytest.raises(ZettaError) as err:
+        await gw.call("Move", gateway_pb2.MoveRequest(session_ids=[sid], motions=[]))
+    assert err.value.code == grpc.StatusCode.INVALID_ARGUMENT and "one per session" in err.value.details
+    # Nothing ran: the episode is where the reset left it.
+    assert (await group.move(None, max_steps=1))[0].episode_step == 1
