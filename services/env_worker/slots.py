@@ -16,12 +16,20 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import grpc
 import numpy as np
 
 from services.common import grpc_errors as ge
 from services.common.specs import TensorSpec
 from services.env_worker import metrics
-from services.env_worker.families import ConfigError, EnvFamily, UnknownFamilyError, canonical_config_key, get_family
+from services.env_worker.families import (
+    ConfigError,
+    EnvFamily,
+    EpisodeError,
+    UnknownFamilyError,
+    canonical_config_key,
+    get_family,
+)
 
 T = TypeVar("T")
 
@@ -117,6 +125,12 @@ class BoundSlot:
         except asyncio.CancelledError:
             abandoned.set()
             raise
+        except EpisodeError as exc:  # the slot closed or its episode ended under a call that had begun
+            raise ge.ServiceError(
+                grpc.StatusCode.ABORTED,
+                f"session {self.session_id}: {exc} while the call ran (the session was closed, or the gateway "
+                "declared this worker dead and its sessions LOST); create or reset a session to go on",
+                [self.session_id]) from None
         finally:
             self.activity.leave()
 

@@ -435,3 +435,15 @@ def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, s
         assert "'nope'" in proc.stderr, "the bad value is quoted back"
     if "robocasa" in env.get("ZETTA_ENV_FAMILIES", ""):
         assert "robocasa" in proc.stderr and "install" in proc.stderr, "what is missing and how to install it"
+
+
+async def test_session_closed_under_a_running_episode_is_aborted_by_name(gw: Gateway) -> None:
+    """A RunEpisode whose session is closed while it runs ends with ABORTED naming the session (not
+    UNKNOWN), the way a worker declared dead mid-episode ends its callers' calls."""
+    group = await gw.create_sessions("robosuite", n=1, env_config=LIFT)
+    await group.reset(seed=0)
+    running = asyncio.ensure_future(group.run_episode(model="scripted-pick-place", max_steps=2000, execute_steps=1))
+    await asyncio.sleep(1.0)
+    await gw.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=group.ids))
+    err = await expect_error(running, "ABORTED")
+    assert group.ids[0] in err.details and "closed" in err.details
