@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import signal
 import sys
 import time
@@ -160,7 +161,9 @@ def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequen
         spec.harness_dir = Path(args.harness)
     print(f"mission demo: {len(spec.seeds)} seeds x 3 conditions (bare, harness, do-nothing control) ...", flush=True)
     print()
-    print(summary(asyncio.run(run_mission(address, spec))))
+    res = asyncio.run(run_mission(address, spec))
+    assert res.report_path is not None
+    print(summary(json.loads(res.report_path.read_text()), res.report_path))
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import subprocess
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -68,24 +69,6 @@ class ConditionResult:
     def successes(self) -> int:
         """Successful episodes."""
         return sum(e.success for e in self.episodes)
-
-    def interventions(self) -> Counter[str]:
-        """Interventions that fired, by kind, over all episodes."""
-        out: Counter[str] = Counter()
-        for e in self.episodes:
-            if e.harness_report is not None:
-                out.update(e.harness_report.interventions_by_kind)
-        return out
-
-    def recovery_share(self, successful_only: bool = False) -> float:
-        """Recoveries' share of the executed actions (0 without a harness)."""
-        rec = pol = 0
-        for e in self.episodes:
-            if e.harness_report is None or (successful_only and not e.success):
-                continue
-            rec += e.harness_report.recovery_actions
-            pol += e.harness_report.policy_actions
-        return rec / (rec + pol) if rec + pol else 0.0
 
 
 @dataclass
@@ -156,11 +139,33 @@ def _checkpoint_sha(model: str) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None and path.exists() else ""
 
 
-def write_report(res: MissionResult) -> Path:
-    """One JSON document: the setup (policy, checkpoint hash, harness hash, seeds) and one row per episode."""
+def _commit() -> str:
+    try:
+        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def _relative(path: str) -> str:
+    """``path`` relative to the working directory when it lies below it (what a README can show)."""
+    if not path:
+        return ""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return path
+
+
+def readme_block(doc: dict[str, Any]) -> str:
+    """The README's copy of the demo's output, rebuilt from the published report (never typed)."""
+    return "```\n" + summary(doc, "out/demo/report.json") + "\n```"
+
+
+def report_doc(res: MissionResult) -> dict[str, Any]:
+    """The run as one JSON document: the setup (commit, policy and checkpoint hash, harness and its
+    content hash, task, seeds) and one row per episode (success, who acted, interventions)."""
     spec = res.spec
-    out = Path(spec.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, cond in res.conditions.items():
         for seed, e in zip(spec.seeds, cond.episodes):
@@ -172,40 +177,64 @@ def write_report(res: MissionResult) -> Path:
                          "interventions": [{"kind": i.get("kind"), "outcome": i.get("outcome"),
                                             "start_step": i.get("start_step"), "actions": i.get("actions")}
                                            for i in (r.interventions if r else [])]})
-    doc = {"suite": spec.suite, "task": spec.task, "seeds": list(spec.seeds), "model": spec.model,
-           "checkpoint_sha256": _checkpoint_sha(spec.model),
-           "harness": str(spec.harness_dir), "harness_content_hash": package_format.content_hash(package_format.read_tree(Path(spec.harness_dir))),
-           "execute_steps": spec.execute_steps, "wall_s": round(res.wall_s, 1), "video": res.video,
-           "video_seed": res.video_seed, "episodes": rows}
+    harness_files = package_format.read_tree(Path(spec.harness_dir))
+    return {"command": "zetta up --demo" + (f" --episodes {len(spec.seeds)}" if len(spec.seeds) != 10 else ""),
+            "commit": _commit(), "suite": spec.suite, "task": spec.task, "seeds": list(spec.seeds),
+            "model": spec.model, "checkpoint_sha256": _checkpoint_sha(spec.model),
+            "harness": Path(spec.harness_dir).name, "harness_content_hash": package_format.content_hash(harness_files),
+            "execute_steps": spec.execute_steps, "wall_s": round(res.wall_s, 1), "video": _relative(res.video),
+            "video_seed": res.video_seed, "episodes": rows}
+
+
+def write_report(res: MissionResult) -> Path:
+    """``report.json`` in the spec's output directory."""
+    out = Path(res.spec.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     path = out / "report.json"
-    path.write_text(json.dumps(doc, indent=1) + "\n")
+    path.write_text(json.dumps(report_doc(res), indent=1) + "\n")
     return path
 
 
-def summary(res: MissionResult) -> str:
-    """The demo's printed summary: one row per condition, then where to look next."""
-    spec = res.spec
-    n = len(spec.seeds)
-    lines = [f"{spec.suite} / {spec.task}, seeds {spec.seeds[0]}-{spec.seeds[-1]} (init state = seed % 50), "
-             f"policy {spec.model}, {spec.execute_steps} actions per chunk",
-             f"harness {Path(spec.harness_dir).name}",
+def _rows(doc: dict[str, Any], condition: str, successful_only: bool = False) -> list[dict[str, Any]]:
+    return [r for r in doc["episodes"] if r["condition"] == condition and (r["success"] or not successful_only)]
+
+
+def recovery_share(rows: Sequence[dict[str, Any]]) -> float:
+    """Recoveries' share of the actions executed over ``rows`` (0 when none ran)."""
+    rec = sum(r["recovery_actions"] for r in rows)
+    total = rec + sum(r["policy_actions"] for r in rows)
+    return rec / total if total else 0.0
+
+
+def summary(doc: dict[str, Any], report_path: Path | str = "") -> str:
+    """The demo's printed summary from its report: one row per condition, then where to look next."""
+    seeds = doc["seeds"]
+    lines = [f"{doc['suite']} / {doc['task']}, seeds {seeds[0]}-{seeds[-1]} (init state = seed % 50), "
+             f"policy {doc['model']} (model.pt sha256 {doc['checkpoint_sha256'][:12]}), "
+             f"{doc['execute_steps']} actions per chunk",
+             f"harness {doc['harness']} (content hash {doc['harness_content_hash'][:12]})",
              "",
              f"{'condition':<38} {'success':>8} {'rate':>5} {'Wilson 95%':>11} {'recovery share':>15}  interventions"]
-    for name, cond in res.conditions.items():
-        lo, hi = wilson(cond.successes, n)
-        kinds = ", ".join(f"{k}: {v}" for k, v in sorted(cond.interventions().items())) or "-"
-        share = f"{cond.recovery_share():.0%}" if name != "bare" else "-"
-        lines.append(f"{LABELS[name]:<38} {cond.successes:>4}/{n:<3} {cond.successes / n:>5.0%} "
-                     f"{f'{lo:.0%}-{hi:.0%}':>11} {share:>15}  {kinds}")
-    harness = res.conditions.get("harness")
-    if harness is not None and harness.successes:
-        lines.append(f"recoveries' share of the actions in successful harness episodes: "
-                     f"{harness.recovery_share(successful_only=True):.0%}")
+    for name in CONDITIONS:
+        rows = _rows(doc, name)
+        if not rows:
+            continue
+        wins = sum(r["success"] for r in rows)
+        lo, hi = wilson(wins, len(rows))
+        kinds = Counter(i["kind"] for r in rows for i in r["interventions"])
+        fired = ", ".join(f"{k}: {v}" for k, v in sorted(kinds.items())) or "-"
+        share = f"{recovery_share(rows):.0%}" if name != "bare" else "-"
+        lines.append(f"{LABELS[name]:<38} {wins:>4}/{len(rows):<3} {wins / len(rows):>5.0%} "
+                     f"{f'{lo:.0%}-{hi:.0%}':>11} {share:>15}  {fired}")
+    won = _rows(doc, "harness", successful_only=True)
+    if won:
+        lines.append(f"recoveries' share of the actions in successful harness episodes: {recovery_share(won):.0%}")
     lines.append("")
-    lines.append(f"report (every episode, its interventions): {res.report_path}")
-    if res.video:
-        lines.append(f"video of a recovered episode (seed {res.video_seed}): {res.video}")
+    if report_path:
+        lines.append(f"report (every episode, its interventions): {report_path}")
+    if doc.get("video"):
+        lines.append(f"video of a recovered episode (seed {doc['video_seed']}): {doc['video']}")
     else:
         lines.append("video: no episode was recovered by the harness on these seeds")
-    lines.append(f"wall time {res.wall_s:.0f} s")
+    lines.append(f"wall time {doc['wall_s']:.0f} s")
     return "\n".join(lines)

@@ -27,7 +27,7 @@ async def test_three_conditions_on_the_same_seed_and_a_report(stack_factory, tmp
     assert {r["seed"] for r in doc["episodes"]} == {3} and doc["suite"] == "libero_goal_swap"
     expected = hashlib.sha256((default_checkpoint() / "model.pt").read_bytes()).hexdigest()
     assert doc["checkpoint_sha256"] == expected and len(doc["harness_content_hash"]) == 64
-    text = summary(res)
+    text = summary(doc, res.report_path)
     for label in LABELS.values():
         assert label in text
     assert str(res.report_path) in text
