@@ -100,6 +100,12 @@ def _cell(a: Mapping[str, Any]) -> str:
     return f"{a['successes']}/{a['episodes']} = {a['rate']:.0%} [{lo:.0%}, {hi:.0%}]" if a["episodes"] else "-"
 
 
+def _arm_cells(arms: Mapping[str, Any]) -> str:
+    """The cells bare | harness | delta | harness + nothing of one row."""
+    b, f, c = (arms[k] for k in ARMS)
+    return f"{_cell(b)} | {_cell(f)} | {f['rate'] - b['rate']:+.0%} | {_cell(c)}"
+
+
 def render(data: Mapping[str, Any]) -> str:
     """The Markdown tables of a results file."""
     pol = data.get("policy", {})
@@ -117,8 +123,8 @@ def render(data: Mapping[str, Any]) -> str:
                   "| task | bare | harness | delta | harness + nothing | recoveries | policy at success | harness version |",
                   "|---|---|---|---|---|---|---|---|"]
         for t in body["tasks"]:
-            b, f, c = (t["arms"][k] for k in ARMS)
-            lines.append(f"| {t['task']} | {_cell(b)} | {_cell(f)} | {f['rate'] - b['rate']:+.0%} | {_cell(c)} | "
+            f = t["arms"]["final"]
+            lines.append(f"| {t['task']} | {_arm_cells(t['arms'])} | "
                          f"{f['recovery_share']:.0%} | {f['policy_in_control_at_success']:.0%} | {t['harness']} |")
         m = body["mean"]
         lines += [f"| **mean** | {m['bare']:.1%} | {m['final']:.1%} | {m['final'] - m['bare']:+.1%} | "
@@ -129,9 +135,7 @@ def render(data: Mapping[str, Any]) -> str:
                   "| suite | task | harness (evolved on) | bare | harness | delta | harness + nothing |",
                   "|---|---|---|---|---|---|---|"]
         for t in data["transfer"]:
-            b, f, c = (t["arms"][k] for k in ARMS)
-            lines.append(f"| {t['suite']} | {t['task']} | {t['harness']} ({t['source']}) | {_cell(b)} | {_cell(f)} | "
-                         f"{f['rate'] - b['rate']:+.0%} | {_cell(c)} |")
+            lines.append(f"| {t['suite']} | {t['task']} | {t['harness']} ({t['source']}) | {_arm_cells(t['arms'])} |")
         lines += ["", f"Transfer wall time {data.get('wall_s', {}).get('transfer', 0.0):.0f} s.", ""]
     return "\n".join(lines).rstrip() + "\n"
 
