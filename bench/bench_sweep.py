@@ -60,6 +60,7 @@ import numpy as np
 
 from bench.sweep_results import Busy, Episode, Results, Row, Usage
 from services.common.policies import DEFAULT_POLICY, policy_env_config
+from services.common.progress import add_progress_option, progress
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
@@ -483,10 +484,12 @@ def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: s
     meter.start()
     t0 = time.perf_counter()
     done = []
-    with quiet_fds():
+    with progress(total=len(indices), desc=mode, leave=False) as bar:
         for i in indices:
-            episode, _ = naive_episode(policy, i, task, max_steps, fast_step)
+            with quiet_fds():  # per episode, so that the bar between them reaches the terminal
+                episode, _ = naive_episode(policy, i, task, max_steps, fast_step)
             done.append(episode)
+            bar.update()
     wall = time.perf_counter() - t0
     usage = meter.stop()
     row.episodes += done
@@ -609,10 +612,11 @@ def balanced(infos: Sequence[Any], n: int) -> list[str]:
 
 
 async def run_lanes(gateway: Any, ids: Sequence[str], episodes: int, task: str, max_steps: int,
-                    first_index: int, on_first_idle: Callable[[], None] | None = None) -> tuple[list[Episode], float]:
+                    first_index: int, on_first_idle: Callable[[], None] | None = None,
+                    label: str = "stack") -> tuple[list[Episode], float]:
     """``len(ids)`` lanes, each running ``run_episode`` back to back on its own session, drawing
     episodes from one queue; ``on_first_idle`` is called once, when a lane first finds it empty (from
-    then on lanes go idle one by one)."""
+    then on lanes go idle one by one). ``label`` names the progress bar."""
     from zetta.client import Session
 
     counter = iter(range(first_index, first_index + episodes))
@@ -627,13 +631,15 @@ async def run_lanes(gateway: Any, ids: Sequence[str], episodes: int, task: str, 
             seed, init = episode_key(i)
             s = await session.run_episode(task=task, seed=seed, init_state_index=init, max_steps=max_steps)
             done.append(Episode(i, s.success, s.steps, time.perf_counter() - t))
+            bar.update()
         if not idle_seen:
             idle_seen = True
             if on_first_idle is not None:
                 on_first_idle()
 
     t0 = time.perf_counter()
-    await asyncio.gather(*(lane(sid) for sid in ids))
+    with progress(total=episodes, desc=f"{label} c={len(ids)}", leave=False) as bar:
+        await asyncio.gather(*(lane(sid) for sid in ids))
     return sorted(done, key=lambda e: e.index), time.perf_counter() - t0
 
 
@@ -765,7 +771,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                 busy.append(Busy(wall_s, env_steps(env_urls) - steps0, cpu_s))
 
             try:
-                done, wall = await run_lanes(gw, ids, n, task, max_steps, first, first_idle)
+                done, wall = await run_lanes(gw, ids, n, task, max_steps, first, first_idle, mode)
             finally:
                 if profiler is not None:
                     log(f"  profile of {mode} c={c}: {profiler.stop()}")
@@ -961,6 +967,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--from-json", default="", metavar="FILE",
                    help="measure nothing: print (and with --write-docs write) the report of a run saved with --json")
     p.add_argument("--write-docs", action="store_true", help="write docs/throughput.md and docs/throughput-*.png")
+    add_progress_option(p)
     p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/)")
     args = p.parse_args(argv)
     if args.limit_keys < 0:

@@ -24,6 +24,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from services.common.progress import PhaseBars, add_progress_option
 from services.common.policies import DEFAULT_POLICY
 from services.evolver import results
 from services.evolver.cmd_common import llm_from_env, publish_dir
@@ -31,7 +32,7 @@ from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
-from services.evolver.stack import Bars, endpoints, stop_on_sigterm
+from services.evolver.stack import endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore, StoreError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +57,7 @@ def _walls(store: RolloutStore) -> float:
 
 
 def _transfer(out: Path, suites: Sequence[str], transfer_suite: str, seeds: int, run: RunConfig, registry: str,
-              bars: Bars) -> None:
+              bars: PhaseBars) -> None:
     """Every suite's last admitted harness per task, on the transfer suite's task of the same index."""
     tstore = RolloutStore(out / f"transfer-{transfer_suite}")
     t0 = time.time()
@@ -92,11 +93,11 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--max-steps", type=int, default=0)
     p.add_argument("--concurrency", type=int, default=2)
     p.add_argument("--env-workers", type=int, default=1)
-    p.add_argument("--no-progress", action="store_true")
+    add_progress_option(p)
     a = p.parse_args(list(argv))
     suites = [s.strip() for s in a.suites.split(",") if s.strip()]
     tasks = task_list(a.tasks)
-    bars = Bars(a.no_progress)
+    bars = PhaseBars()
     meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": results.commit(ROOT),
             "policy": results.policy_provenance(a.model), "control_model": EvolveConfig.control_model,
             "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,

@@ -15,8 +15,6 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
 
 @dataclass(frozen=True)
 class Endpoints:
@@ -76,26 +74,3 @@ def stop_on_sigterm() -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-
-
-class Bars:
-    """One tqdm bar per phase, closed when the next phase starts (``Evolution`` progress callback)."""
-
-    def __init__(self, disable: bool = False) -> None:
-        self.disable = disable
-        self._phase = ""
-        self._bar: tqdm | None = None
-
-    def __call__(self, phase: str, done: int, total: int) -> None:
-        if phase != self._phase or self._bar is None:
-            self.close()
-            self._phase = phase
-            self._bar = tqdm(total=total, desc=phase, unit="ep", disable=self.disable, leave=True, dynamic_ncols=True)
-        self._bar.n = done
-        self._bar.refresh()
-
-    def close(self) -> None:
-        """Close the current bar."""
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
