@@ -31,7 +31,7 @@ rows
     zetta bench rollout                          # the full sweep (15-30 minutes on 2 shared cores)
     zetta bench rollout --concurrency 1,4 --baseline-concurrency 2 --episodes 4 --max-steps 16 \
         --naive-episodes 2 --naive-fast-episodes 2 --limit-seconds 2     # a quick look
-    zetta bench rollout --write-docs             # also docs/throughput.md + PNG plots
+    zetta bench rollout --write-docs             # also docs/results/throughput.{json,md} + PNG plots
     zetta bench rollout --from-json run.json --write-docs   # re-render a run saved with --json
 """
 
@@ -61,6 +61,7 @@ import numpy as np
 from bench.sweep_results import Busy, Episode, Results, Row, Usage
 from services.common.policies import DEFAULT_POLICY, policy_env_config
 from services.common.progress import add_progress_option, progress
+from services.common.provenance import RESULTS_DIR, git_source
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
@@ -966,9 +967,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--json", default="", help="also write every measurement to this JSON file")
     p.add_argument("--from-json", default="", metavar="FILE",
                    help="measure nothing: print (and with --write-docs write) the report of a run saved with --json")
-    p.add_argument("--write-docs", action="store_true", help="write docs/throughput.md and docs/throughput-*.png")
+    p.add_argument("--write-docs", action="store_true", help="write docs/results/throughput.json, its page throughput.md and throughput-*.png")
     add_progress_option(p)
-    p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/)")
+    p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/results/)")
     args = p.parse_args(argv)
     if args.limit_keys < 0:
         p.error("--limit-keys must be >= 0")
@@ -997,9 +998,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         data = json.loads(Path(args.from_json).read_text())
         res = Results.from_json(data)
         command = data.get("command", "zetta bench rollout")
+        source = data.get("source") or {"commit": "unknown", "note": f"{args.from_json} did not record its commit"}
     else:
         log(f"{machine()}; load average {load_average():.2f}; task {SUITE}/{args.task}, {args.max_steps} steps per "
             f"episode, model {args.model}, concurrency {args.concurrency}, baseline {args.baseline_concurrency}")
+        source = git_source(Path(__file__).resolve().parents[1])
         res = sweep(args, log)
         res.elapsed_s = time.perf_counter() - t0
         command = ("zetta bench rollout " + " ".join(a for a in argv[1:])).strip()
@@ -1015,10 +1018,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     for failure in res.failures:
         print(f"FAILED   {failure}")
     if args.json:
-        Path(args.json).write_text(json.dumps({**res.to_json(), "command": command}, indent=1, default=float))
+        Path(args.json).write_text(json.dumps({**res.to_json(), "command": command, "source": source}, indent=1,
+                                              default=float))
     if args.write_docs:
-        docs = Path(args.docs_dir) if args.docs_dir else Path(__file__).resolve().parents[1] / "docs"
-        for path in bench_report.write_docs(res, docs, command):
+        docs = Path(args.docs_dir) if args.docs_dir else RESULTS_DIR
+        for path in bench_report.write_docs(res, docs, command, source):
             print(f"wrote {path}")
     return 0
 

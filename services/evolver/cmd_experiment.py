@@ -11,8 +11,8 @@ the transfer arm has one too (<out>/transfer-<suite>): the harness admitted for 
 evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
 the transfer suite. <out>/results.json is the machine-readable result (services/evolver/results.py:
 commit, policy checkpoint hash, splits, test arms with Wilson intervals, control, recoveries'
-share, wall time); <out>/summary.md is rendered from it, and so is docs/evolution.md's results block
-(scripts/gen_evolution_tables.py). Stop it and run the same command again: finished rollouts,
+share, wall time); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
+--from <out>/results.json` publishes it as docs/results/evolution.{json,md}. Stop it and run the same command again: finished rollouts,
 rounds and admitted versions are kept (see `zetta evolve`).
 """
 
@@ -24,8 +24,9 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.common.progress import PhaseBars, add_progress_option
 from services.common.policies import DEFAULT_POLICY
+from services.common.progress import PhaseBars, add_progress_option
+from services.common.provenance import git_source
 from services.evolver import results
 from services.evolver.cmd_common import llm_from_env, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
@@ -98,7 +99,7 @@ def main(argv: Sequence[str]) -> int:
     suites = [s.strip() for s in a.suites.split(",") if s.strip()]
     tasks = task_list(a.tasks)
     bars = PhaseBars()
-    meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": results.commit(ROOT),
+    meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": git_source(ROOT),
             "policy": results.policy_provenance(a.model), "control_model": EvolveConfig.control_model,
             "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,
                         "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
@@ -137,5 +138,5 @@ def main(argv: Sequence[str]) -> int:
     path = results.write(a.out / "results.json", data)
     (a.out / "summary.md").write_text("# Evolution experiment\n\n" + results.render(data))
     print(f"results: {path}\nsummary: {a.out / 'summary.md'}\n"
-          f"docs: python scripts/gen_evolution_tables.py {path} (rewrites docs/evolution.md's results block)")
+          f"publish: python scripts/gen_results.py evolution --from {path} (docs/results/evolution.json and .md)")
     return 0

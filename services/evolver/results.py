@@ -6,38 +6,23 @@ control's model, every task's splits (dev, gate, test seeds), and per task the t
 policy, evolved harness, the harness around the do-nothing policy) with Wilson 95 % intervals,
 the recoveries' share of actions over successful episodes and the share of successes with the
 policy in control at the success step; the means, the transfer rows and the wall time per phase.
-docs/evolution.md's results block is rendered from this file by scripts/gen_evolution_tables.py,
-never typed.
+Published as docs/results/evolution.json, it renders docs/results/evolution.md (:func:`page`;
+``python scripts/gen_results.py evolution --from runs/experiment/results.json``), never typed.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from services.common.provenance import page_header
 from services.evolver.store import RolloutStore
 
 SCHEMA = 1
-#: Marks of the generated block in a Markdown page.
-BEGIN = "<!-- BEGIN GENERATED: evolution results (scripts/gen_evolution_tables.py) -->"
-END = "<!-- END GENERATED: evolution results -->"
 ARMS = ("bare", "final", "control")
-
-
-def commit(root: Path) -> dict[str, Any]:
-    """The commit the code ran at, and whether the tree had uncommitted changes ("" outside git)."""
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30,
-                                  check=True).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
 
 
 def checkpoint_hash(path: Path) -> str:
@@ -140,10 +125,6 @@ def render(data: Mapping[str, Any]) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-def replace_block(page: str, block: str) -> str:
-    """``page`` with the text between :data:`BEGIN` and :data:`END` replaced by ``block``."""
-    if page.count(BEGIN) != 1 or page.count(END) != 1 or page.index(BEGIN) > page.index(END):
-        raise ValueError(f"the page needs one {BEGIN!r} line before one {END!r} line")
-    head, rest = page.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block}{END}{tail}"
+def page(data: Mapping[str, Any]) -> str:
+    """docs/results/evolution.md: the generated page of a published results file."""
+    return page_header("evolution", "Evolution: bare policy, evolved harness, do-nothing control", data) + "\n" + render(data)
