@@ -1,6 +1,6 @@
 """`zetta bench rollout`: the concurrency sweep, its two baselines and the machine's limit, in one run.
 
-Every figure of docs/throughput.md comes from one invocation, so that the rows compare under the
+Every figure of docs/results/throughput.md comes from one invocation, so that the rows compare under the
 same load (the machine may be shared; the 1-minute load average is recorded with every row).
 All rows run the same episodes: LIBERO-Goal ``--task`` rendering the camera the policy reads (the
 image VLA: agentview at its size, once per policy call; nothing for a state policy), episode i from init state

@@ -40,7 +40,7 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
     workdir.mkdir(parents=True, exist_ok=True)
     # Batch-invariant serving unless the caller chose otherwise: with it an episode key replays bit
     # for bit whatever else shares the policy worker's batch, so a medoid's validation rollout, its
-    # regression rollout and a resumed run's rollouts are the same episode (docs/harness-results.md).
+    # regression rollout and a resumed run's rollouts are the same episode (docs/evolution.md, "Replays").
     extra = {"ZETTA_TORCH_THREADS": "1", "ZETTA_LOG_LEVEL": "WARNING",
              "ZETTA_VLA_BATCH_INVARIANT": os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "1")}
     if video:
