@@ -22,13 +22,13 @@ from services.harness.runtime.library.schema import Param, PredicateSpec
 Details = Mapping[str, float] | None
 
 
-def _look_back(w: Window, p: Mapping[str, float]) -> tuple[int, Frame] | None:
-    """The ``horizon`` parameter as a frame count and the frame that many frames back, or
-    ``None`` while the window is shorter than that."""
+def _look_back(w: Window, p: Mapping[str, float]) -> tuple[int, Frame, Frame] | None:
+    """The ``horizon`` parameter as a frame count, the frame that many frames back and the current
+    one, or ``None`` while the window is shorter than that."""
     n = int(p["horizon"])
     if len(w.frames) < n:
         return None
-    return n, w.frames[-n]
+    return n, w.frames[-n], w.now
 
 
 def grasp_retained(w: Window, p: Mapping[str, float]) -> Details:
@@ -77,8 +77,7 @@ def stalled_progress(w: Window, p: Mapping[str, float]) -> Details:
     milestone was reached."""
     if (back := _look_back(w, p)) is None:
         return None
-    n, first = back
-    now = w.now
+    n, first, now = back
     if now.milestones - first.milestones:
         return None
     if float(np.linalg.norm(t.vec(now, "robot0_eef_pos") - t.vec(first, "robot0_eef_pos"))) >= p["min_motion"]:
@@ -93,12 +92,9 @@ def stalled_progress(w: Window, p: Mapping[str, float]) -> Details:
 def non_approach(w: Window, p: Mapping[str, float]) -> Details:
     """Not holding the object, farther than ``near`` from it, and not ``min_gain`` closer than
     ``horizon`` frames ago: the policy hovers short of the object or wanders."""
-    if (back := _look_back(w, p)) is None:
+    if (back := _look_back(w, p)) is None or t.grasped(back[2]):
         return None
-    n, first = back
-    now = w.now
-    if t.grasped(now):
-        return None
+    n, first, now = back
     dist, before = t.eef_object_dist(now), t.eef_object_dist(first)
     if dist is None or before is None or dist <= p["near"] or before - dist >= p["min_gain"]:
         return None
@@ -113,8 +109,7 @@ def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
     without moving it; silent on every other stage, so it clears once the env moves on."""
     if (back := _look_back(w, p)) is None:
         return None
-    n, first = back
-    now = w.now
+    n, first, now = back
     if not (t.articulation_stage(now) and t.articulation_stage(first)) or t.stage_kind(first) != t.stage_kind(now):
         return None
     if now.milestones - first.milestones:
@@ -132,12 +127,9 @@ def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
 def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
     """The hand closed in on another object (by ``min_gain`` over ``horizon`` frames, to within
     ``near`` of it) while not closing in on the task object and farther from it than from that one."""
-    if (back := _look_back(w, p)) is None:
+    if (back := _look_back(w, p)) is None or t.grasped(back[2]):
         return None
-    n, first = back
-    now = w.now
-    if t.grasped(now):
-        return None
+    n, first, now = back
     obj, obj0 = t.object_pos(now), t.object_pos(first)
     if obj is None or obj0 is None:
         return None
@@ -187,8 +179,7 @@ def held_stalled_transport(w: Window, p: Mapping[str, float]) -> Details:
     over ``horizon`` frames while still farther than ``near``: coarse transport has stalled."""
     if (back := _look_back(w, p)) is None:
         return None
-    n, first = back
-    now = w.now
+    n, first, now = back
     if not all(t.grasped(f) for f in (now, first)):
         return None
     obj, target = t.object_box(now), t.target_box(now)
