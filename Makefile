@@ -7,7 +7,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.zetta-installed
 
-.PHONY: setup proto demo demo-throughput up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim lint clean
+.PHONY: setup proto demo demo-throughput up test test-slow test-all bench bench-sweep bench-harness bench-policy bench-sim results lint clean
 
 setup: $(STAMP) proto $(VENV)/.zetta-validators $(VENV)/.zetta-interop
 
@@ -65,6 +65,10 @@ bench-harness: setup
 
 bench-policy: setup
 	$(PY) bench/bench_policy.py
+
+# docs/results/*.md from their results files (docs/results/README.md lists the commands that write those).
+results: setup
+	$(PY) scripts/gen_results.py
 
 # Simulation: fast step vs env.step vs raw mj_step, slot create/reset, threads vs processes.
 bench-sim: setup

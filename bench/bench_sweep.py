@@ -1,6 +1,6 @@
 """`zetta bench rollout`: the concurrency sweep, its two baselines and the machine's limit, in one run.
 
-Every figure of docs/throughput.md comes from one invocation, so that the rows compare under the
+Every figure of docs/results/throughput.md comes from one invocation, so that the rows compare under the
 same load (the machine may be shared; the 1-minute load average is recorded with every row).
 All rows run the same episodes: LIBERO-Goal ``--task`` rendering the camera the policy reads (the
 image VLA: agentview at its size, once per policy call; nothing for a state policy), episode i from init state
@@ -31,7 +31,7 @@ rows
     zetta bench rollout                          # the full sweep (15-30 minutes on 2 shared cores)
     zetta bench rollout --concurrency 1,4 --baseline-concurrency 2 --episodes 4 --max-steps 16 \
         --naive-episodes 2 --naive-fast-episodes 2 --limit-seconds 2     # a quick look
-    zetta bench rollout --write-docs             # also docs/throughput.md + PNG plots
+    zetta bench rollout --write-docs             # also docs/results/throughput.{json,md} + PNG plots
     zetta bench rollout --from-json run.json --write-docs   # re-render a run saved with --json
 """
 
@@ -60,6 +60,8 @@ import numpy as np
 
 from bench.sweep_results import Busy, Episode, Results, Row, Usage
 from services.common.policies import DEFAULT_POLICY, policy_env_config
+from services.common.progress import add_progress_option, progress
+from services.common.provenance import RESULTS_DIR, git_source
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
@@ -483,10 +485,12 @@ def run_naive(rows: dict[str, Row], policy: Any, indices: Sequence[int], task: s
     meter.start()
     t0 = time.perf_counter()
     done = []
-    with quiet_fds():
+    with progress(total=len(indices), desc=mode, leave=False) as bar:
         for i in indices:
-            episode, _ = naive_episode(policy, i, task, max_steps, fast_step)
+            with quiet_fds():  # per episode, so that the bar between them reaches the terminal
+                episode, _ = naive_episode(policy, i, task, max_steps, fast_step)
             done.append(episode)
+            bar.update()
     wall = time.perf_counter() - t0
     usage = meter.stop()
     row.episodes += done
@@ -609,10 +613,11 @@ def balanced(infos: Sequence[Any], n: int) -> list[str]:
 
 
 async def run_lanes(gateway: Any, ids: Sequence[str], episodes: int, task: str, max_steps: int,
-                    first_index: int, on_first_idle: Callable[[], None] | None = None) -> tuple[list[Episode], float]:
+                    first_index: int, on_first_idle: Callable[[], None] | None = None,
+                    label: str = "stack") -> tuple[list[Episode], float]:
     """``len(ids)`` lanes, each running ``run_episode`` back to back on its own session, drawing
     episodes from one queue; ``on_first_idle`` is called once, when a lane first finds it empty (from
-    then on lanes go idle one by one)."""
+    then on lanes go idle one by one). ``label`` names the progress bar."""
     from zetta.client import Session
 
     counter = iter(range(first_index, first_index + episodes))
@@ -627,13 +632,15 @@ async def run_lanes(gateway: Any, ids: Sequence[str], episodes: int, task: str, 
             seed, init = episode_key(i)
             s = await session.run_episode(task=task, seed=seed, init_state_index=init, max_steps=max_steps)
             done.append(Episode(i, s.success, s.steps, time.perf_counter() - t))
+            bar.update()
         if not idle_seen:
             idle_seen = True
             if on_first_idle is not None:
                 on_first_idle()
 
     t0 = time.perf_counter()
-    await asyncio.gather(*(lane(sid) for sid in ids))
+    with progress(total=episodes, desc=f"{label} c={len(ids)}", leave=False) as bar:
+        await asyncio.gather(*(lane(sid) for sid in ids))
     return sorted(done, key=lambda e: e.index), time.perf_counter() - t0
 
 
@@ -765,7 +772,7 @@ async def _stack_points(stack: Any, spec: StackSpec, concurrency: Sequence[int],
                 busy.append(Busy(wall_s, env_steps(env_urls) - steps0, cpu_s))
 
             try:
-                done, wall = await run_lanes(gw, ids, n, task, max_steps, first, first_idle)
+                done, wall = await run_lanes(gw, ids, n, task, max_steps, first, first_idle, mode)
             finally:
                 if profiler is not None:
                     log(f"  profile of {mode} c={c}: {profiler.stop()}")
@@ -960,8 +967,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--json", default="", help="also write every measurement to this JSON file")
     p.add_argument("--from-json", default="", metavar="FILE",
                    help="measure nothing: print (and with --write-docs write) the report of a run saved with --json")
-    p.add_argument("--write-docs", action="store_true", help="write docs/throughput.md and docs/throughput-*.png")
-    p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/)")
+    p.add_argument("--write-docs", action="store_true", help="write docs/results/throughput.json, its page throughput.md and throughput-*.png")
+    add_progress_option(p)
+    p.add_argument("--docs-dir", default="", help="where --write-docs writes (default: the repository's docs/results/)")
     args = p.parse_args(argv)
     if args.limit_keys < 0:
         p.error("--limit-keys must be >= 0")
@@ -990,9 +998,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         data = json.loads(Path(args.from_json).read_text())
         res = Results.from_json(data)
         command = data.get("command", "zetta bench rollout")
+        source = data.get("source") or {"commit": "unknown", "note": f"{args.from_json} did not record its commit"}
     else:
         log(f"{machine()}; load average {load_average():.2f}; task {SUITE}/{args.task}, {args.max_steps} steps per "
             f"episode, model {args.model}, concurrency {args.concurrency}, baseline {args.baseline_concurrency}")
+        source = git_source(Path(__file__).resolve().parents[1])
         res = sweep(args, log)
         res.elapsed_s = time.perf_counter() - t0
         command = ("zetta bench rollout " + " ".join(a for a in argv[1:])).strip()
@@ -1008,10 +1018,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     for failure in res.failures:
         print(f"FAILED   {failure}")
     if args.json:
-        Path(args.json).write_text(json.dumps({**res.to_json(), "command": command}, indent=1, default=float))
+        Path(args.json).write_text(json.dumps({**res.to_json(), "command": command, "source": source}, indent=1,
+                                              default=float))
     if args.write_docs:
-        docs = Path(args.docs_dir) if args.docs_dir else Path(__file__).resolve().parents[1] / "docs"
-        for path in bench_report.write_docs(res, docs, command):
+        docs = Path(args.docs_dir) if args.docs_dir else RESULTS_DIR
+        for path in bench_report.write_docs(res, docs, command, source):
             print(f"wrote {path}")
     return 0
 

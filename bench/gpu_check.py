@@ -22,7 +22,7 @@ render     one 64x64 agentview frame of LIBERO-Goal per GL backend, each in a fr
            (bench/bench_render.py): EGL on the GPU, EGL on Mesa's llvmpipe, OSMesa
 rollout    ``zetta bench rollout`` with the stack's policy on the GPU: episodes/min and per-episode
            latency at each concurrency; the p50 latency ratio 32 vs 8
-scale-out  docs/throughput.md's scale-out model (its PREDICTED rows and per-core figures) against
+scale-out  docs/results/throughput.md's scale-out model (its PREDICTED rows and per-core figures) against
            this run's measurements
 
 Profiles: ``gpu`` (14 env workers, concurrency 8,16,32,64; about 8 minutes on 16 cores and an
@@ -426,7 +426,7 @@ def scale_out_step(steps: dict[str, StepResult], results: Path) -> StepResult:
     rollout = steps.get("rollout")
     if rollout is None or rollout.status != "ran":
         return StepResult("scale-out", "skipped", note="needs the rollout step's measurements")
-    data = gpu_report.scale_out_comparison(rollout.data, steps.get("batch"), ROOT / "docs" / "throughput.md")
+    data = gpu_report.scale_out_comparison(rollout.data, steps.get("batch"), ROOT / "docs" / "results" / "throughput.md")
     return StepResult("scale-out", "ran", note=data.pop("note", ""), data=data)
 
 

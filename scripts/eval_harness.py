@@ -6,11 +6,12 @@ policy plus the harness (ResetSpec.harness_dir), side by side, with identical ep
 episode it records success, m*, and the harness report: how many actions the policy and the
 recoveries took and the interventions by kind, so a success that recoveries did all the work for
 shows as such. Results: one JSON row per episode appended to --out, the table on stdout and, with
---doc, a results page (table, every episode, the command that reproduces it).
+--results, a results file (every row, the command, the commit) and its page beside it
+(docs/results/harness.json and .md; docs/harness-results.md explains them).
 
-    .venv/bin/python scripts/eval_harness.py --harness examples/harnesses/libero-goal-pick-place \\
+    python scripts/eval_harness.py --harness examples/harnesses/libero-goal-pick-place \\
         --suites libero_goal_swap,libero_goal_task --tasks 6,9 --seeds 130-139 --out out/harness/eval.jsonl \\
-        --doc docs/harness-results.md
+        --results docs/results/harness.json
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
 from services.common.policies import DEFAULT_POLICY  # noqa: E402
+from services.common.provenance import page_header, provenance, write_results  # noqa: E402
 from services.harness.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
 from services.ops.local_stack import LocalStack  # noqa: E402
@@ -134,10 +136,6 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-#: Everything after this line of an existing results page (the written reading of the numbers) is kept.
-NOTES_MARKER = "<!-- notes: kept when the page is regenerated -->"
-
-
 def checkpoint_id(model: str) -> str:
     """sha256 prefix and time of the policy checkpoint the run used (the VLA is retrained often)."""
     path = ROOT / "services" / "policy_worker" / "checkpoints" / model / "model.pt"
@@ -148,27 +146,15 @@ def checkpoint_id(model: str) -> str:
     return f"model.pt sha256 {digest}..., written {stamp}"
 
 
-def write_doc(path: Path, rows: list[dict], a: argparse.Namespace, seconds: float, load: float) -> None:
-    """The results page: what ran, the table, every episode, and the command that reproduces it."""
-    cmd = (f".venv/bin/python scripts/eval_harness.py --harness {a.harness_rel} --model {a.model} "
-           f"--suites {a.suites} --tasks {a.tasks} --seeds {a.seeds} --execute-steps {a.execute_steps} "
-           f"--out {a.out} --doc {path}")
-    digest = next((r["content_hash"] for r in rows if "content_hash" in r), a.content_hash)
+def page(doc: dict) -> str:
+    """docs/results/harness.md from a results file: the table, then every episode pair."""
+    rows = doc["rows"]
     lines = [
-        "# Example harness: held-out success, frozen policy alone vs policy + harness",
-        "",
-        f"Harness: `{a.harness_rel}` (content hash `{digest[:16]}...`). Policy: `{a.model}` "
-        f"({next((r['checkpoint'] for r in rows if 'checkpoint' in r), checkpoint_id(a.model))}), executing {a.execute_steps} actions of each chunk. Both conditions run "
-        "through the real stack (LocalStack: gateway, env worker, policy worker on loopback gRPC) on the same "
-        "episode keys, side by side.",
-        "",
-        f"Held-out seeds `{a.seeds}`, init state = seed % 50; LIBERO's 300-step budget. {len(rows) // 2} episode "
-        + (f"pairs in {seconds / 60:.0f} min on the shared 2-core machine (1-min load average at the end: {load:.1f})."
-           if seconds else "pairs (page rebuilt from the recorded rows)."),
-        "",
-        "\"policy share of actions\" is the share of executed actions the frozen policy chose (the rest were "
-        "recoveries'); \"successes with policy share < 50%\" counts harness successes where recoveries executed "
-        "most of the actions: those are successes of the harness's recoveries more than of the policy.",
+        page_header("harness", "Harness evaluation: frozen policy alone vs policy + harness", doc),
+        f"Harness `{doc['harness']}` (content hash `{doc['content_hash'][:16]}...`); policy `{doc['model']}` "
+        f"({doc['checkpoint']}), {doc['execute_steps']} actions of each chunk executed per policy call; seeds "
+        f"`{doc['seeds']}`, init state = seed % 50; {len(rows) // 2} episode pairs in {doc['wall_s'] / 60:.0f} min. "
+        "How to read it: [docs/harness-results.md](../harness-results.md).",
         "",
         table(rows),
         "",
@@ -188,11 +174,19 @@ def write_doc(path: Path, rows: list[dict], a: argparse.Namespace, seconds: floa
             f"| {'yes' if h.get('success') else 'no'} | {h.get('first_missing_milestone') or '-'} | "
             f"{h.get('policy_actions', 0)}/{h.get('policy_actions', 0) + h.get('recovery_actions', 0)} | {ivs} |"
         )
-    lines += ["", "Reproduce:", "", "```", cmd, "```", ""]
-    notes = ""
-    if path.exists() and NOTES_MARKER in path.read_text():
-        notes = path.read_text().split(NOTES_MARKER, 1)[1]
-    path.write_text("\n".join(lines) + "\n" + NOTES_MARKER + notes)
+    return "\n".join(lines) + "\n"
+
+
+def write_doc(results: Path, rows: list[dict], a: argparse.Namespace, seconds: float) -> None:
+    """The results file (every row, what ran, the command, the commit) and its page beside it."""
+    cmd = (f"python scripts/eval_harness.py --harness {a.harness_rel} --model {a.model} "
+           f"--suites {a.suites} --tasks {a.tasks} --seeds {a.seeds} --execute-steps {a.execute_steps} "
+           f"--out {a.out} --results {a.results}")
+    doc = {**provenance(cmd, ROOT), "harness": a.harness_rel,
+           "content_hash": next((r["content_hash"] for r in rows if "content_hash" in r), a.content_hash),
+           "model": a.model, "checkpoint": next((r["checkpoint"] for r in rows if "checkpoint" in r), a.checkpoint),
+           "execute_steps": a.execute_steps, "seeds": a.seeds, "wall_s": round(seconds, 1), "rows": rows}
+    write_results("harness", doc, page(doc), results.parent)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="130-139", help="held-out seeds: 'a-b' or a comma list; init state = seed %% 50")
     p.add_argument("--execute-steps", type=int, default=4)
     p.add_argument("--out", default="out/harness/eval.jsonl")
-    p.add_argument("--doc", default="", help="also write the results page (table, every episode, command) here")
-    p.add_argument("--rebuild", action="store_true", help="run nothing: rebuild the table/page from the rows in --out")
+    p.add_argument("--results", default="", help="also write the results file (e.g. docs/results/harness.json) and "
+                                                  "its page beside it")
+    p.add_argument("--rebuild", action="store_true", help="run nothing: rebuild the table (and --results) from --out")
     a = p.parse_args(argv)
     a.harness_rel = os.path.relpath(Path(a.harness).resolve(), ROOT)
     a.content_hash = load_package(a.harness).content_hash
@@ -216,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.rebuild:
         rows = [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
         print(table(rows))
-        if a.doc:
-            write_doc(Path(a.doc), rows, a, 0.0, os.getloadavg()[0])
+        if a.results:
+            write_doc(Path(a.results), rows, a, 0.0)
         return 0
     # A long heartbeat timeout: on a loaded 2-core machine a busy env worker can miss the default
     # 3 s, and the gateway would declare it dead in the middle of an episode.
@@ -228,8 +223,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = asyncio.run(_run(a, stack.gateway_address, out))
     print(table(rows))
     print(f"{len(rows)} episodes in {time.time() - start:.0f} s")
-    if a.doc:
-        write_doc(Path(a.doc), rows, a, time.time() - start, os.getloadavg()[0])
+    if a.results:
+        write_doc(Path(a.results), rows, a, time.time() - start)
     return 0
 
 

@@ -1,15 +1,17 @@
-"""Success of the scripted oracle per suite, task and init state, written as docs/oracle.md.
+"""Success of the scripted oracle per suite, task and init state: docs/results/oracle.json and .md.
 
 Runs the oracle (services/policy_worker/models/oracle.py) in-process on the libero family, one
 episode per (suite, task, init state), spread over worker processes (each process keeps one slot
 per suite, so a task switch only swaps warm envs). Every episode is judged by the environment's own
 success predicate; failures are reported with their first missing milestone m*.
 
-    .venv/bin/python scripts/oracle_report.py --suites libero_goal libero_goal_swap libero_goal_task \
-        --inits 50 --processes 1 --out docs/oracle.md
+    python scripts/oracle_report.py --suites libero_goal libero_goal_swap libero_goal_task \
+        --inits 50 --processes 2
 
 Per-episode results are appended to a JSONL file as they finish (``--jsonl``), so a long run that
-is cut short still leaves its data; ``--resume`` skips episodes already in that file.
+is cut short still leaves its data; ``--resume`` skips episodes already in that file. The results
+file (``--results``, default docs/results/oracle.json) and its page are written every 20 episodes
+and at the end; docs/oracle.md says what the oracle does and how to read the page.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
-from zetta_wire.stats import wilson  # noqa: E402 - after the path set-up above
+from services.common.progress import add_progress_option, progress  # noqa: E402 - after the path set-up above
+from services.common.provenance import RESULTS_DIR, page_header, provenance, write_results  # noqa: E402
+from zetta_wire.stats import wilson  # noqa: E402
 
 
 _SLOTS: dict[str, object] = {}
@@ -64,31 +68,16 @@ def _key(r: dict) -> tuple:
     return (r["suite"], r["task"], r["init"], r["seed"])
 
 
-def write_report(records: list[dict], out: Path, command: str, planned: int) -> None:
+def page(doc: dict) -> str:
+    """docs/results/oracle.md from a results file: per task and per suite, with Wilson 95 % intervals."""
+    records = doc["episodes"]
     by_task: dict[tuple[str, int], list[dict]] = defaultdict(list)
     for r in records:
         by_task[(r["suite"], r["task"])].append(r)
     lines = [
-        "# Scripted oracle: success per task",
-        "",
-        "The oracle (`services/policy_worker/models/oracle.py`, model name `oracle`) runs one generic skill",
-        "per goal predicate of the task's BDDL goal (pick-and-place for on/in, push for on a table region,",
-        "finger push of the lever for turnon/turnoff, grasp-and-pull of the handle bar for open/close), reading",
-        "only privileged state; no task names or per-task constants. Pick-and-place slides an object out from",
-        "under its target first (an opened drawer over the bowl it must receive), lowers an object into a",
-        "deep dish it fits in (a bottle into a bowl), and carries around the obstacles the scene reports",
-        "(`task_obstacle_bbox`), letting go where nothing hangs over the target; the hand pitches toward the",
-        "base when the elbow nears its limit; a drawer bar too low to grip from the front is hooked from",
-        "above. Success is the environment's own `_check_success()`. Episodes use LIBERO's step budget (300",
-        "for LIBERO-Goal) and seed 0.",
-        "",
-        f"Episodes run: {len(records)} of {planned} planned.",
-        "",
-        "Command:",
-        "",
-        "```",
-        command,
-        "```",
+        page_header("oracle", "Scripted oracle: success per task", doc),
+        f"Episodes run: {len(records)} of {doc['planned']} planned; seed {doc['seed']}, one episode per init state, "
+        "LIBERO's step budget. What the oracle does: [docs/oracle.md](../oracle.md).",
         "",
         "| suite | task | instruction | successes | Wilson 95% | mean steps (successes) | most common m* of failures |",
         "|---|---|---|---|---|---|---|",
@@ -110,12 +99,13 @@ def write_report(records: list[dict], out: Path, command: str, planned: int) -> 
     for suite, (k, n) in sorted(totals.items()):
         lo, hi = wilson(k, n)
         lines.append(f"| {suite} | {k}/{n} | {k / n:.1%} | {lo:.2f}-{hi:.2f} |")
-    notes = ""
-    if out.exists():  # a hand-written "## Notes" section at the end survives a rerun
-        previous = out.read_text()
-        if "\n## Notes" in previous:
-            notes = previous[previous.index("\n## Notes"):]
-    out.write_text("\n".join(lines) + "\n" + notes)
+    return "\n".join(lines) + "\n"
+
+
+def write_report(records: list[dict], results: Path, command: str, planned: int, seed: int) -> None:
+    """The results file (every episode, sorted by key) and its page beside it."""
+    doc = {**provenance(command, ROOT), "planned": planned, "seed": seed, "episodes": sorted(records, key=_key)}
+    write_results("oracle", doc, page(doc), results.parent)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -126,12 +116,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first-init", type=int, default=0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--processes", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "oracle.md")
-    parser.add_argument("--jsonl", type=Path, default=None, help="per-episode results (default: OUT with .jsonl)")
+    parser.add_argument("--results", type=Path, default=RESULTS_DIR / "oracle.json",
+                        help="the results file; its page oracle.md is written beside it")
+    parser.add_argument("--jsonl", type=Path, default=ROOT / "out" / "oracle" / "episodes.jsonl",
+                        help="per-episode results as they finish (what --resume reads)")
     parser.add_argument("--resume", action="store_true", help="skip episodes already in the JSONL file")
-    parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--quiet", action="store_true", help="no line per episode")
+    add_progress_option(parser)
     args = parser.parse_args(argv)
-    jsonl = args.jsonl or args.out.with_suffix(".jsonl")
+    jsonl = args.jsonl
+    jsonl.parent.mkdir(parents=True, exist_ok=True)
     jobs = [
         (suite, task, init, args.seed)
         for init in range(args.first_init, args.first_init + args.inits)
@@ -147,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     todo = [j for j in jobs if j not in done]
     if not args.resume and jsonl.exists():
         jsonl.unlink()
-    command = ".venv/bin/python scripts/oracle_report.py " + " ".join(
+    command = "python scripts/oracle_report.py " + " ".join(
         a if " " not in a else repr(a) for a in (argv if argv is not None else sys.argv[1:])
     )
     records = [done[j] for j in jobs if j in done]
@@ -155,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     ctx = mp.get_context("spawn")
     with ctx.Pool(args.processes, maxtasksperchild=None) as pool, jsonl.open("a") as sink:
-        for r in pool.imap_unordered(run_one, todo, chunksize=1):
+        for r in progress(pool.imap_unordered(run_one, todo, chunksize=1), total=len(todo), desc="oracle"):
             records.append(r)
             sink.write(json.dumps(r) + "\n")
             sink.flush()
@@ -164,10 +158,10 @@ def main(argv: list[str] | None = None) -> int:
                       f"init {r['init']}: {'ok' if r['success'] else 'FAIL ' + r['first_missing']} "
                       f"({r['steps']} steps)", flush=True)
             if len(records) % 20 == 0:
-                write_report(records, args.out, command, len(jobs))
-    write_report(records, args.out, command, len(jobs))
+                write_report(records, args.results, command, len(jobs), args.seed)
+    write_report(records, args.results, command, len(jobs), args.seed)
     k = sum(r["success"] for r in records)
-    print(f"{k}/{len(records)} successes; report in {args.out}")
+    print(f"{k}/{len(records)} successes; results in {args.results} and {args.results.with_suffix('.md')}")
     return 0
 
 

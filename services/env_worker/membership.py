@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 
 import grpc
 
+from services.common.tasks import cancel_and_wait
 from services.common.tls import aio_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
 from services.env_worker.config import EnvWorkerConfig
@@ -104,12 +105,7 @@ class Membership:
 
     async def stop(self, deregister: bool) -> None:
         """Stop heartbeating; deregister so the gateway stops routing here at once."""
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await cancel_and_wait(self._task)
         if deregister:
             try:
                 await self._stub.DeregisterWorker(

@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY
+from services.common.progress import add_progress_option
 from services.evolver.llm import LLMConfig, LLMError, config_from_env
 from services.evolver.rollout import RunConfig
 
@@ -29,7 +30,7 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--concurrency", type=int, default=2, help="episodes in flight")
     p.add_argument("--env-workers", type=int, default=2, help="env workers of the local stack")
     p.add_argument("--video", action="store_true", help="record every rollout's video (slower: renders each step)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_progress_option(p)
 
 
 def tasks_of(text: str) -> tuple[str, ...]:

@@ -16,10 +16,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from services.common.progress import PhaseBars
 from services.evolver.cmd_common import add_run_args, publish_dir, run_config, tasks_of
 from services.evolver.evolve import evaluate_transfer
 from services.evolver.report import write_report
-from services.evolver.stack import Bars, endpoints, stop_on_sigterm
+from services.evolver.stack import endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore
 
 
@@ -35,7 +36,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = p.parse_args(list(sys.argv[1:] if argv is None else argv))
     store_dir = a.store or Path("runs") / f"eval-{a.suite}"
     store = RolloutStore(store_dir)
-    bars = Bars(a.no_progress)
+    bars = PhaseBars()
     t0 = time.time()
     try:
         with stop_on_sigterm():
@@ -53,7 +54,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _run(a: argparse.Namespace, store: RolloutStore, bars: Bars) -> tuple[list[dict[str, Any]], str]:
+def _run(a: argparse.Namespace, store: RolloutStore, bars: PhaseBars) -> tuple[list[dict[str, Any]], str]:
     """Both arms on every task, on the stack named by the arguments (or a local one)."""
     store_dir = store.root
     with endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency, store_dir / "stack", a.video) as ep:

@@ -17,6 +17,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from services.common.progress import PhaseBars, add_progress_option
 from services.evolver.cluster import ClusterParams
 from services.evolver.cmd_common import add_run_args, llm_from_env, run_config, tasks_of
 from services.evolver.eod import EODParams
@@ -25,7 +26,7 @@ from services.evolver.gate import GateParams
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
-from services.evolver.stack import Bars, endpoints, stop_on_sigterm
+from services.evolver.stack import endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore, StoreError
 
 
@@ -38,6 +39,7 @@ def _export(argv: Sequence[str]) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--task", default=None)
     p.add_argument("--harness", default=None, help="only rollouts of this harness reference ('' for the bare policy)")
+    add_progress_option(p)
     a = p.parse_args(argv)
     store = RolloutStore(a.store)
     rows = store.query(task=a.task, harness=a.harness)
@@ -85,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
                        llm=llm_from_env(), max_depth=a.max_depth)
     store = RolloutStore(store_dir)
-    bars = Bars(a.no_progress)
+    bars = PhaseBars()
     t0 = time.time()
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,

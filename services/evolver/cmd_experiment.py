@@ -11,8 +11,8 @@ the transfer arm has one too (<out>/transfer-<suite>): the harness admitted for 
 evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
 the transfer suite. <out>/results.json is the machine-readable result (services/evolver/results.py:
 commit, policy checkpoint hash, splits, test arms with Wilson intervals, control, recoveries'
-share, wall time); <out>/summary.md is rendered from it, and so is docs/evolution.md's results block
-(scripts/gen_evolution_tables.py). Stop it and run the same command again: finished rollouts,
+share, wall time); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
+--from <out>/results.json` publishes it as docs/results/evolution.{json,md}. Stop it and run the same command again: finished rollouts,
 rounds and admitted versions are kept (see `zetta evolve`).
 """
 
@@ -25,13 +25,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY
+from services.common.progress import PhaseBars, add_progress_option
+from services.common.provenance import git_source
 from services.evolver import results
 from services.evolver.cmd_common import llm_from_env, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
-from services.evolver.stack import Bars, endpoints, stop_on_sigterm
+from services.evolver.stack import endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore, StoreError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +58,7 @@ def _walls(store: RolloutStore) -> float:
 
 
 def _transfer(out: Path, suites: Sequence[str], transfer_suite: str, seeds: int, run: RunConfig, registry: str,
-              bars: Bars) -> None:
+              bars: PhaseBars) -> None:
     """Every suite's last admitted harness per task, on the transfer suite's task of the same index."""
     tstore = RolloutStore(out / f"transfer-{transfer_suite}")
     t0 = time.time()
@@ -92,12 +94,12 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--max-steps", type=int, default=0)
     p.add_argument("--concurrency", type=int, default=2)
     p.add_argument("--env-workers", type=int, default=1)
-    p.add_argument("--no-progress", action="store_true")
+    add_progress_option(p)
     a = p.parse_args(list(argv))
     suites = [s.strip() for s in a.suites.split(",") if s.strip()]
     tasks = task_list(a.tasks)
-    bars = Bars(a.no_progress)
-    meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": results.commit(ROOT),
+    bars = PhaseBars()
+    meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": git_source(ROOT),
             "policy": results.policy_provenance(a.model), "control_model": EvolveConfig.control_model,
             "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,
                         "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
@@ -136,5 +138,5 @@ def main(argv: Sequence[str]) -> int:
     path = results.write(a.out / "results.json", data)
     (a.out / "summary.md").write_text("# Evolution experiment\n\n" + results.render(data))
     print(f"results: {path}\nsummary: {a.out / 'summary.md'}\n"
-          f"docs: python scripts/gen_evolution_tables.py {path} (rewrites docs/evolution.md's results block)")
+          f"publish: python scripts/gen_results.py evolution --from {path} (docs/results/evolution.json and .md)")
     return 0

@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 from services.evolver.lerobot_video import read_frames, write_frames
 from services.evolver.store import Rollout, RolloutStore
 from services.common.policies import ACTION_DIM, PROPRIO_INPUTS
+from services.common.progress import progress
 
 CODEBASE_VERSION = "v3.0"
 FPS = 20
@@ -61,7 +62,7 @@ def export_lerobot(store: RolloutStore, rollouts: Sequence[Rollout], out: Path,
     tables, episodes, ep_stats = [], [], []
     video_info: dict[str, Any] = {}
     total = 0
-    for ep, r in enumerate(rollouts):
+    for ep, r in enumerate(progress(rollouts, desc="export")):
         text = (instructions or {}).get((r.suite, r.task), f"{r.suite}/{r.task}")
         columns = _episode_columns(store, r, ep, total, tasks.setdefault(text, len(tasks)))
         n = len(columns["action"])

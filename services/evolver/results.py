@@ -6,38 +6,23 @@ control's model, every task's splits (dev, gate, test seeds), and per task the t
 policy, evolved harness, the harness around the do-nothing policy) with Wilson 95 % intervals,
 the recoveries' share of actions over successful episodes and the share of successes with the
 policy in control at the success step; the means, the transfer rows and the wall time per phase.
-docs/evolution.md's results block is rendered from this file by scripts/gen_evolution_tables.py,
-never typed.
+Published as docs/results/evolution.json, it renders docs/results/evolution.md (:func:`page`;
+``python scripts/gen_results.py evolution --from runs/experiment/results.json``), never typed.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from services.common.provenance import page_header
 from services.evolver.store import RolloutStore
 
 SCHEMA = 1
-#: Marks of the generated block in a Markdown page.
-BEGIN = "<!-- BEGIN GENERATED: evolution results (scripts/gen_evolution_tables.py) -->"
-END = "<!-- END GENERATED: evolution results -->"
 ARMS = ("bare", "final", "control")
-
-
-def commit(root: Path) -> dict[str, Any]:
-    """The commit the code ran at, and whether the tree had uncommitted changes ("" outside git)."""
-    def git(*args: str) -> str:
-        try:
-            return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30,
-                                  check=True).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
 
 
 def checkpoint_hash(path: Path) -> str:
@@ -100,6 +85,12 @@ def _cell(a: Mapping[str, Any]) -> str:
     return f"{a['successes']}/{a['episodes']} = {a['rate']:.0%} [{lo:.0%}, {hi:.0%}]" if a["episodes"] else "-"
 
 
+def _arm_cells(arms: Mapping[str, Any]) -> str:
+    """The cells bare | harness | delta | harness + nothing of one row."""
+    b, f, c = (arms[k] for k in ARMS)
+    return f"{_cell(b)} | {_cell(f)} | {f['rate'] - b['rate']:+.0%} | {_cell(c)}"
+
+
 def render(data: Mapping[str, Any]) -> str:
     """The Markdown tables of a results file."""
     pol = data.get("policy", {})
@@ -117,8 +108,8 @@ def render(data: Mapping[str, Any]) -> str:
                   "| task | bare | harness | delta | harness + nothing | recoveries | policy at success | harness version |",
                   "|---|---|---|---|---|---|---|---|"]
         for t in body["tasks"]:
-            b, f, c = (t["arms"][k] for k in ARMS)
-            lines.append(f"| {t['task']} | {_cell(b)} | {_cell(f)} | {f['rate'] - b['rate']:+.0%} | {_cell(c)} | "
+            f = t["arms"]["final"]
+            lines.append(f"| {t['task']} | {_arm_cells(t['arms'])} | "
                          f"{f['recovery_share']:.0%} | {f['policy_in_control_at_success']:.0%} | {t['harness']} |")
         m = body["mean"]
         lines += [f"| **mean** | {m['bare']:.1%} | {m['final']:.1%} | {m['final'] - m['bare']:+.1%} | "
@@ -129,17 +120,11 @@ def render(data: Mapping[str, Any]) -> str:
                   "| suite | task | harness (evolved on) | bare | harness | delta | harness + nothing |",
                   "|---|---|---|---|---|---|---|"]
         for t in data["transfer"]:
-            b, f, c = (t["arms"][k] for k in ARMS)
-            lines.append(f"| {t['suite']} | {t['task']} | {t['harness']} ({t['source']}) | {_cell(b)} | {_cell(f)} | "
-                         f"{f['rate'] - b['rate']:+.0%} | {_cell(c)} |")
+            lines.append(f"| {t['suite']} | {t['task']} | {t['harness']} ({t['source']}) | {_arm_cells(t['arms'])} |")
         lines += ["", f"Transfer wall time {data.get('wall_s', {}).get('transfer', 0.0):.0f} s.", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
-def replace_block(page: str, block: str) -> str:
-    """``page`` with the text between :data:`BEGIN` and :data:`END` replaced by ``block``."""
-    if page.count(BEGIN) != 1 or page.count(END) != 1 or page.index(BEGIN) > page.index(END):
-        raise ValueError(f"the page needs one {BEGIN!r} line before one {END!r} line")
-    head, rest = page.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block}{END}{tail}"
+def page(data: Mapping[str, Any]) -> str:
+    """docs/results/evolution.md: the generated page of a published results file."""
+    return page_header("evolution", "Evolution: bare policy, evolved harness, do-nothing control", data) + "\n" + render(data)

@@ -15,8 +15,6 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
 
 @dataclass(frozen=True)
 class Endpoints:
@@ -42,7 +40,7 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
     workdir.mkdir(parents=True, exist_ok=True)
     # Batch-invariant serving unless the caller chose otherwise: with it an episode key replays bit
     # for bit whatever else shares the policy worker's batch, so a medoid's validation rollout, its
-    # regression rollout and a resumed run's rollouts are the same episode (docs/harness-results.md).
+    # regression rollout and a resumed run's rollouts are the same episode (docs/evolution.md, "Replays").
     extra = {"ZETTA_TORCH_THREADS": "1", "ZETTA_LOG_LEVEL": "WARNING",
              "ZETTA_VLA_BATCH_INVARIANT": os.environ.get("ZETTA_VLA_BATCH_INVARIANT", "1")}
     if video:
@@ -76,26 +74,3 @@ def stop_on_sigterm() -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-
-
-class Bars:
-    """One tqdm bar per phase, closed when the next phase starts (``Evolution`` progress callback)."""
-
-    def __init__(self, disable: bool = False) -> None:
-        self.disable = disable
-        self._phase = ""
-        self._bar: tqdm | None = None
-
-    def __call__(self, phase: str, done: int, total: int) -> None:
-        if phase != self._phase or self._bar is None:
-            self.close()
-            self._phase = phase
-            self._bar = tqdm(total=total, desc=phase, unit="ep", disable=self.disable, leave=True, dynamic_ncols=True)
-        self._bar.n = done
-        self._bar.refresh()
-
-    def close(self) -> None:
-        """Close the current bar."""
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None

@@ -11,6 +11,7 @@ import logging
 import time
 
 from services.common.grpc_errors import STORE_ERRORS
+from services.common.tasks import cancel_and_wait
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, now_ms
@@ -43,12 +44,7 @@ class Monitor:
 
     async def stop(self) -> None:
         """Stop the loop and wait for it."""
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await cancel_and_wait(self._task)
 
     async def _run(self) -> None:
         last_gauges = 0.0

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, policy_env_config
+from services.common.progress import add_progress_option, progress
 from zetta.client import Gateway, SessionGroup
 from services.ops.hops import histograms, scrape
 from zetta_wire.stats import wilson
@@ -103,16 +104,18 @@ async def _policy_step_loop(sessions: SessionGroup, task: str, inits: Sequence[i
     running = list(sessions.ids)
     successes = 0
     steps = 0
-    while running:
-        results = await sessions.subset(running).policy_step(model=model, execute_steps=execute_steps)
-        still = []
-        for r in results:
-            if r.done or r.episode_step >= budget:
-                successes += r.success
-                steps += r.episode_step
-            else:
-                still.append(r.session_id)
-        running = still
+    with progress(total=len(running), desc="episodes") as bar:
+        while running:
+            results = await sessions.subset(running).policy_step(model=model, execute_steps=execute_steps)
+            still = []
+            for r in results:
+                if r.done or r.episode_step >= budget:
+                    successes += r.success
+                    steps += r.episode_step
+                    bar.update()
+                else:
+                    still.append(r.session_id)
+            running = still
     return successes, steps
 
 
@@ -246,6 +249,7 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=DEFAULT_POLICY, help=f"the policy (default {DEFAULT_POLICY})")
     p.add_argument("--execute-steps", type=int, default=DEMO_EXECUTE_STEPS,
                    help=f"actions of each chunk run per policy call (default {DEMO_EXECUTE_STEPS})")
+    add_progress_option(p)
 
 
 #: Subcommands that hand their arguments to another module's own parser (their --help is theirs).

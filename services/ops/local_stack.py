@@ -118,7 +118,7 @@ class LocalStack:
     #: on (ZETTA_AUTH_TOKENS_FILE in ``extra_env``).
     client_token: str | None = None
     #: Pin each env worker to its own share of the CPUs (ZETTA_CPUS), unless the caller sets
-    #: ZETTA_CPUS or a CPU quota is tighter than the CPUs (docs/throughput.md: +4 % steps/s on 2 cores).
+    #: ZETTA_CPUS or a CPU quota is tighter than the CPUs (measure it: bench/bench_stack_ab.py, docs/throughput.md).
     pin_env_workers: bool = True
     services: dict[str, Service] = field(default_factory=dict, init=False)
     redis_proc: subprocess.Popen[bytes] | None = field(default=None, init=False)
@@ -259,9 +259,8 @@ class LocalStack:
     def step_concurrency(self) -> str:
         """Each env worker's ZETTA_STEP_CONCURRENCY: the caller's, else this machine's usable CPUs
         shared among the workers (at least one each). Every worker of this stack runs on the same
-        cores, so more slots stepping at once than a worker's share only contend for them: on 2
-        cores with 2 workers of 16 slots each, one at a time per worker stepped 10 % more steps/s at
-        11 % less CPU per step than no bound (docs/throughput.md)."""
+        cores, so more slots stepping at once than a worker's share only contend for them (more
+        threads than cores switch mid-step and cost CPU; docs/throughput.md, "Settings")."""
         chosen = self._base_env().get("ZETTA_STEP_CONCURRENCY")
         return chosen if chosen else str(max(1, usable_cpus() // max(1, self.env_workers)))
 

@@ -100,15 +100,14 @@ async def test_sweep_pieces_and_report(shared_stack: LocalStack, tmp_path: Path)
                      gateway=probe, paired=pairing.results)
     table = bench_report.text_table(res)
     assert table.count("\n") == 1 + len(res.rows)
-    page = tmp_path / "throughput.md"
-    page.write_text(f"# keep me\n\n{bench_report.BEGIN}\nold\n{bench_report.END}\n\n## also kept\n")
-    written = bench_report.write_docs(res, tmp_path, "zetta bench rollout --test")
-    text = page.read_text()
-    assert text.startswith("# keep me") and text.rstrip().endswith("## also kept") and "\nold\n" not in text
+    written = bench_report.write_docs(res, tmp_path, "zetta bench rollout --test", {"commit": "abc", "dirty": False})
+    text = (tmp_path / "throughput.md").read_text()
+    assert text.startswith("# Rollout throughput") and "measured by: `zetta bench rollout --test`" in text
     assert "| stack | 2 | 8 |" in text and "Scale-out model" in text and "Paired rounds" in text
-    assert {p.name for p in written} == {"throughput.md", "throughput-episodes.png", "throughput-steps.png",
-                                         "throughput-latency.png", "throughput-cpu.png"}
+    assert {p.name for p in written} == {"throughput.json", "throughput.md", "throughput-episodes.png",
+                                         "throughput-steps.png", "throughput-latency.png", "throughput-cpu.png"}
     assert all(p.stat().st_size > 1000 for p in written)
+    assert bench_report.page(json.loads((tmp_path / "throughput.json").read_text())) == text  # what gen_results renders
     again = bs.Results.from_json(json.loads(json.dumps(res.to_json(), default=float)))  # what --json writes
     assert bench_report.targets(again) == bench_report.targets(res)
 

@@ -67,20 +67,11 @@ def test_results_file_holds_provenance_splits_arms_and_means_and_renders_the_tab
     assert "| libero_goal | 9 | e-9@1 (libero_goal_task/9) | 3/10 = 30%" in text
 
 
-def test_the_docs_block_is_replaced_and_checked_by_the_generator(tmp_path: Path) -> None:
-    import subprocess
-    import sys
-
-    data = {"schema": 1, "policy": {"model": "m"}, "source": {"commit": "c"}, "suites": {}, "transfer": []}
-    (tmp_path / "results.json").write_text(json.dumps(data))
-    doc = tmp_path / "page.md"
-    doc.write_text(f"# Page\n\n{results.BEGIN}\ntyped by hand\n{results.END}\n\nafter\n")
-    script = Path(__file__).resolve().parents[2] / "scripts" / "gen_evolution_tables.py"
-    check = [sys.executable, str(script), str(tmp_path / "results.json"), "--doc", str(doc), "--check"]
-    assert subprocess.run(check, capture_output=True).returncode == 1
-    subprocess.run(check[:-1], check=True, capture_output=True)
-    page = doc.read_text()
-    assert "typed by hand" not in page and "policy `m`" in page and page.endswith("after\n")
-    assert subprocess.run(check, capture_output=True).returncode == 0
-    with pytest.raises(ValueError, match="BEGIN GENERATED"):
-        results.replace_block("no marks", "x")
+def test_the_published_page_is_generated_from_the_results_file() -> None:
+    """docs/results/evolution.md: the common generated head (command, commit) above the tables."""
+    data = {"schema": 1, "policy": {"model": "m"}, "source": {"commit": "c0ffee", "dirty": False},
+            "command": "zetta evolve experiment --tasks 6", "suites": {}, "transfer": []}
+    page = results.page(data)
+    assert page.startswith("# Evolution: bare policy, evolved harness, do-nothing control (generated)")
+    assert "measured by: `zetta evolve experiment --tasks 6`" in page and "commit: `c0ffee`" in page
+    assert "policy `m`" in page

@@ -43,7 +43,7 @@ def test_tiny_run_without_a_gpu_lists_its_skips_and_exits_0(tmp_path: Path) -> N
 
 
 def test_scale_out_predictions_are_read_from_the_docs() -> None:
-    pred = gpu_report.doc_predictions(ROOT / "docs" / "throughput.md")
+    pred = gpu_report.doc_predictions(ROOT / "docs" / "results" / "throughput.md")
     assert {"per_core_steps", "steps_per_episode", "gpu_batch_ms", "cores16_episodes_per_min"} <= set(pred)
     assert all(pred[k] > 0 for k in ("per_core_steps", "steps_per_episode", "gpu_batch_ms"))
 
@@ -69,8 +69,8 @@ def test_rollout_and_scale_out_sections() -> None:
     growth = gpu_report.latency_growth(rollout)
     assert growth is not None and growth["p50_ratio"] == pytest.approx(1.5)
     batch = type("Step", (), {"data": {"device": "cuda", "ms": {"fp32 (gpu)": {"64": 2.0}}}})()
-    comparison = gpu_report.scale_out_comparison(rollout, batch, ROOT / "docs" / "throughput.md")
-    pred = gpu_report.doc_predictions(ROOT / "docs" / "throughput.md")
+    comparison = gpu_report.scale_out_comparison(rollout, batch, ROOT / "docs" / "results" / "throughput.md")
+    pred = gpu_report.doc_predictions(ROOT / "docs" / "results" / "throughput.md")
     rows = {r["quantity"].split(" (")[0]: r for r in comparison["rows"]}
     steps = rows["stack steps/s with 14 env workers"]
     assert steps["predicted"] == pytest.approx(14 * pred["per_core_steps"]) and steps["measured"] == pytest.approx(320.0)

@@ -32,6 +32,11 @@ def camera_obs_name(camera: str) -> str:
     return f"{camera.removeprefix('robot0_')}_image"
 
 
+def _privileged(name: str, shape: tuple[int, ...], description: str) -> TensorSpec:
+    """A privileged float32 observation (for the oracle, milestones and offline diagnosis only)."""
+    return TensorSpec(name, "float32", shape, privileged=True, description=description)
+
+
 def manipulation_schema(
     cameras: Sequence[str], camera_size: int, proprio_dim: int, object_state_dim: int
 ) -> dict[str, TensorSpec]:
@@ -51,48 +56,24 @@ def manipulation_schema(
             (proprio_dim,),
             description="joint pos, cos, sin, vel; eef pos, quat; gripper qpos, qvel",
         ),
-        TensorSpec(
-            "task_object_pos", "float32", (3,), privileged=True,
-            description=(
-                "position of what the current goal stage moves: the object, or the handle of the drawer, door or "
-                "knob to actuate; zeros if none"
-            ),
-        ),
-        TensorSpec(
-            "task_object_quat", "float32", (4,), privileged=True,
-            description="orientation (xyzw) of the task object; zeros if none",
-        ),
-        TensorSpec(
-            "task_target_pos", "float32", (3,), privileged=True,
-            description=(
-                "position of the stage's target object, region or site (for a handle: where it must move to); "
-                "zeros if the stage has none"
-            ),
-        ),
-        TensorSpec(
-            "task_object_bbox", "float32", (6,), privileged=True,
-            description="world axis-aligned box around the task object's collision geoms: min xyz, max xyz",
-        ),
-        TensorSpec(
-            "task_target_bbox", "float32", (6,), privileged=True,
-            description="world axis-aligned box of the target (geoms of a body, or a region's box); zeros if none",
-        ),
-        TensorSpec(
-            "task_grasped", "float32", (1,), privileged=True,
-            description="1.0 while both fingers touch the task object, else 0.0",
-        ),
-        TensorSpec(
-            "task_obstacle_bbox", "float32", (OBSTACLE_SLOTS, 6), privileged=True,
-            description=(
-                "world boxes (min xyz, max xyz) of what stands around the task object and its target: other "
-                "objects whole, fixtures geom by geom, the robot and the moved object left out; nearest to the "
-                "way from object to target first, zero rows pad"
-            ),
-        ),
-        TensorSpec(
-            "object_state", "float32", (object_state_dim,), privileged=True,
-            description="per object: pos, quat, pos and quat relative to the eef; zero-padded",
-        ),
+        _privileged("task_object_pos", (3,),
+                    "position of what the current goal stage moves: the object, or the handle of the drawer, door or "
+                    "knob to actuate; zeros if none"),
+        _privileged("task_object_quat", (4,), "orientation (xyzw) of the task object; zeros if none"),
+        _privileged("task_target_pos", (3,),
+                    "position of the stage's target object, region or site (for a handle: where it must move to); "
+                    "zeros if the stage has none"),
+        _privileged("task_object_bbox", (6,),
+                    "world axis-aligned box around the task object's collision geoms: min xyz, max xyz"),
+        _privileged("task_target_bbox", (6,),
+                    "world axis-aligned box of the target (geoms of a body, or a region's box); zeros if none"),
+        _privileged("task_grasped", (1,), "1.0 while both fingers touch the task object, else 0.0"),
+        _privileged("task_obstacle_bbox", (OBSTACLE_SLOTS, 6),
+                    "world boxes (min xyz, max xyz) of what stands around the task object and its target: other "
+                    "objects whole, fixtures geom by geom, the robot and the moved object left out; nearest to the "
+                    "way from object to target first, zero rows pad"),
+        _privileged("object_state", (object_state_dim,),
+                    "per object: pos, quat, pos and quat relative to the eef; zero-padded"),
     ]
     specs += milestone_specs() + signal_specs()  # mu_t and phi_t, privileged
     specs += [

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from services.common.progress import add_progress_option, progress
 from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, state_vector
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
@@ -222,6 +223,7 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
         for p in procs:
             p.start()
         done = 0
+        bar = progress(total=len(episodes), desc="demos", initial=len(results_by_key))
         try:
             while done < len(todo):
                 if recipe.time_budget_s and time.monotonic() - start > recipe.time_budget_s:
@@ -234,11 +236,13 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
                         break
                     continue
                 done += 1
+                bar.update()
                 _save_episode(shard_dir, r)
                 results_by_key[(r[0], r[1])] = r
                 if done % 20 == 0:
                     log(f"{len(results_by_key)}/{len(episodes)} episodes, {time.monotonic() - start:.0f}s")
         finally:
+            bar.close()
             for p in procs:
                 p.terminate()
                 p.join(timeout=5)
@@ -299,6 +303,7 @@ def main(argv=None) -> int:
     p.add_argument("--action-noise", type=float, default=0.0, help="DART noise std on the executed arm action")
     p.add_argument("--execute-steps", type=int, default=1, help="DAgger: student actions run per chunk")
     p.add_argument("--max-episodes", type=int, default=0, help="run only the first N episodes of the list")
+    add_progress_option(p)
     p.add_argument("--student-noise", default=DataRecipe.student_noise, choices=("gaussian", "zero"),
                    help="DAgger: the student's flow start")
     a = p.parse_args(argv)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, checkpoint_dir
+from services.common.progress import add_progress_option, progress
 from zetta_wire.stats import wilson
 
 
@@ -91,7 +92,7 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
     for p in procs:
         p.start()
     Path(out_path).parent.mkdir(parents=True, exist_ok=True)
-    with open(out_path, "a") as f:
+    with open(out_path, "a") as f, progress(total=len(episodes), desc=suite, initial=len(rows)) as bar:
         while len(rows) < len(episodes):
             try:
                 r = results.get(timeout=10)
@@ -105,6 +106,7 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
                 continue
             r.update(model=model, execute_steps=execute_steps, env=env or {})
             rows.append(r)
+            bar.update()
             f.write(json.dumps(r) + "\n")
             f.flush()
             if len(rows) % 10 == 0:
@@ -173,6 +175,7 @@ def main(argv=None) -> int:
     p.add_argument("--quantize", default="", help="ZETTA_VLA_QUANTIZE for the policy (e.g. w8a8)")
     p.add_argument("--checkpoint", default="")
     p.add_argument("--out", default="out/eval/episodes.jsonl")
+    add_progress_option(p)
     p.add_argument("--report", default="", help="print the table of an existing episodes .jsonl and stop")
     p.add_argument("--results", default="", help="also write the results file (e.g. docs/results/vla.json) "
                    "and its page (docs/results/vla.md); VLA models only")

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from services.common.progress import add_progress_option, progress
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.policy import save_checkpoint
 from services.policy_worker.vla.text import TextEncoder
@@ -207,6 +208,7 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
     start = time.monotonic() - resume.seconds
     losses = resume.losses
     step = first - 1
+    bar = progress(total=cfg.steps, desc="train", unit="step", initial=first)
     for step in range(first, cfg.steps):
         pick = torch.randint(0, n, (cfg.batch_size,), device=device)
         idx = pick if sample_steps is None else sample_steps[pick.cpu()].to(device)
@@ -221,6 +223,7 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
         opt.step()
         sched.step()
         losses.append(loss.item())
+        bar.update()
         if (step + 1) % 500 == 0:
             log(f"step {step + 1}/{cfg.steps} loss {np.mean(losses[-500:]):.4f} {time.monotonic() - start:.0f}s")
         if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.steps:
@@ -228,6 +231,7 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
         if cfg.time_budget_s and time.monotonic() - start > cfg.time_budget_s:
             log(f"time budget reached at step {step + 1}")
             break
+    bar.close()
     seconds = time.monotonic() - start
     model.cpu().eval()
     meta = {
@@ -365,6 +369,7 @@ def main(argv=None) -> int:
     p.add_argument("--lr", type=float, default=PipelineConfig.lr)
     p.add_argument("--threads", type=int, default=TrainConfig.threads,
                    help="torch intra-op threads for training (1 leaves cores to the env processes)")
+    add_progress_option(p)
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"

@@ -15,11 +15,20 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from services.harness.runtime.api import Window
+from services.harness.runtime.api import Frame, Window
 from services.harness.runtime.library import tools as t
 from services.harness.runtime.library.schema import Param, PredicateSpec
 
 Details = Mapping[str, float] | None
+
+
+def _look_back(w: Window, p: Mapping[str, float]) -> tuple[int, Frame, Frame] | None:
+    """The ``horizon`` parameter as a frame count, the frame that many frames back and the current
+    one, or ``None`` while the window is shorter than that."""
+    n = int(p["horizon"])
+    if len(w.frames) < n:
+        return None
+    return n, w.frames[-n], w.now
 
 
 def grasp_retained(w: Window, p: Mapping[str, float]) -> Details:
@@ -66,10 +75,9 @@ def failed_acquisition(w: Window, p: Mapping[str, float]) -> Details:
 def stalled_progress(w: Window, p: Mapping[str, float]) -> Details:
     """Over the last ``horizon`` frames the hand moved less than ``min_motion`` in all and no new
     milestone was reached."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None:
         return None
-    first, now = w.frames[-n], w.now
+    n, first, now = back
     if now.milestones - first.milestones:
         return None
     if float(np.linalg.norm(t.vec(now, "robot0_eef_pos") - t.vec(first, "robot0_eef_pos"))) >= p["min_motion"]:
@@ -84,12 +92,9 @@ def stalled_progress(w: Window, p: Mapping[str, float]) -> Details:
 def non_approach(w: Window, p: Mapping[str, float]) -> Details:
     """Not holding the object, farther than ``near`` from it, and not ``min_gain`` closer than
     ``horizon`` frames ago: the policy hovers short of the object or wanders."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None or t.grasped(back[2]):
         return None
-    now, first = w.now, w.frames[-n]
-    if t.grasped(now):
-        return None
+    n, first, now = back
     dist, before = t.eef_object_dist(now), t.eef_object_dist(first)
     if dist is None or before is None or dist <= p["near"] or before - dist >= p["min_gain"]:
         return None
@@ -102,10 +107,9 @@ def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
     ``min_approach`` closer to the (perceived) handle and the handle moved less than
     ``min_progress``. Covers a policy that never heads for the handle and one that touches it
     without moving it; silent on every other stage, so it clears once the env moves on."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None:
         return None
-    first, now = w.frames[-n], w.now
+    n, first, now = back
     if not (t.articulation_stage(now) and t.articulation_stage(first)) or t.stage_kind(first) != t.stage_kind(now):
         return None
     if now.milestones - first.milestones:
@@ -123,12 +127,9 @@ def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
 def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
     """The hand closed in on another object (by ``min_gain`` over ``horizon`` frames, to within
     ``near`` of it) while not closing in on the task object and farther from it than from that one."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None or t.grasped(back[2]):
         return None
-    now, first = w.now, w.frames[-n]
-    if t.grasped(now):
-        return None
+    n, first, now = back
     obj, obj0 = t.object_pos(now), t.object_pos(first)
     if obj is None or obj0 is None:
         return None
@@ -176,10 +177,9 @@ def held_near_target(w: Window, p: Mapping[str, float]) -> Details:
 def held_stalled_transport(w: Window, p: Mapping[str, float]) -> Details:
     """Holding the object but not bringing it ``min_gain`` closer to the target (horizontally)
     over ``horizon`` frames while still farther than ``near``: coarse transport has stalled."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None:
         return None
-    now, first = w.now, w.frames[-n]
+    n, first, now = back
     if not all(t.grasped(f) for f in (now, first)):
         return None
     obj, target = t.object_box(now), t.target_box(now)
@@ -218,9 +218,9 @@ def supported_placement(w: Window, p: Mapping[str, float]) -> Details:
 def blocked_motion(w: Window, p: Mapping[str, float]) -> Details:
     """For ``horizon`` frames the hand was commanded to move but realized less than ``ratio`` of it
     (``phi_eef_motion``): something blocks the arm."""
-    n = int(p["horizon"])
-    if len(w.frames) < n:
+    if (back := _look_back(w, p)) is None:
         return None
+    n = back[0]
     if len(t.vec(w.now, "phi_eef_motion")) < 6:
         return None
     motion = np.array([f.obs["phi_eef_motion"] for f in w.frames[-n:]], dtype=np.float64)

@@ -1,0 +1,104 @@
+"""Render the pages under docs/results/ from their results files (docs/results/<topic>.json -> .md).
+
+  python scripts/gen_results.py                      # every page whose results file is there
+  python scripts/gen_results.py oracle throughput    # only these topics
+  python scripts/gen_results.py evolution --from runs/experiment/results.json   # publish a run, then render
+  python scripts/gen_results.py --check              # exit 1 when a page differs from its results file
+
+A results file records the command that measured it and the commit the code ran at; the commands
+that write them are listed in docs/results/README.md. Pages are never edited by hand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import shutil
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
+
+from services.common.provenance import RESULTS_DIR, page_header  # noqa: E402 - after the path set-up above
+
+#: topic -> (module or script path, the function rendering a results file's page).
+TOPICS: dict[str, tuple[str, str]] = {
+    "vla": ("services.policy_worker.vla.results", "render"),
+    "evolution": ("services.evolver.results", "page"),
+    "throughput": ("bench.bench_report", "page"),
+    "bench-rollout": ("bench.bench_rollout", "page"),
+    "oracle": ("scripts/oracle_report.py", "page"),
+    "harness": ("scripts/eval_harness.py", "page"),
+}
+
+
+def renderer(topic: str) -> Callable[[Mapping[str, Any]], str]:
+    """The page function of a topic."""
+    where, name = TOPICS[topic]
+    if where.endswith(".py"):
+        spec = importlib.util.spec_from_file_location(f"_results_{topic.replace('-', '_')}", ROOT / where)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(where)
+    fn: Callable[[Mapping[str, Any]], str] = getattr(module, name)
+    return fn
+
+
+def render(topic: str, doc: Mapping[str, Any]) -> str:
+    """A topic's page. A results file that kept only the text its command rendered (``rendered``,
+    from a run whose raw measurements were not kept) is shown as that text under the common head."""
+    if "rendered" in doc:
+        return page_header(topic, str(doc.get("title", topic)), doc) + "\n" + str(doc["rendered"])
+    return renderer(topic)(doc)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("topics", nargs="*", help=f"topics to render (default: every results file; known: {', '.join(TOPICS)})")
+    p.add_argument("--from", dest="source", type=Path, default=None,
+                   help="copy this results file to docs/results/<topic>.json first (one topic)")
+    p.add_argument("--results-dir", type=Path, default=RESULTS_DIR, help="where the results files are")
+    p.add_argument("--out-dir", type=Path, default=None, help="write the pages here (default: beside their files)")
+    p.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is out of date")
+    a = p.parse_args(argv)
+    unknown = [t for t in a.topics if t not in TOPICS]
+    found = sorted(f.stem for f in a.results_dir.glob("*.json"))
+    strays = [t for t in found if t not in TOPICS]
+    if unknown or strays:
+        p.error(f"unknown topic(s) {unknown + strays}; known: {', '.join(TOPICS)}")
+    if a.source is not None:
+        if len(a.topics) != 1:
+            p.error("--from goes with exactly one topic")
+        shutil.copyfile(a.source, a.results_dir / f"{a.topics[0]}.json")
+        found = sorted({*found, a.topics[0]})
+    topics = a.topics or found
+    stale = []
+    for topic in topics:
+        data = a.results_dir / f"{topic}.json"
+        if not data.exists():
+            p.error(f"{data} does not exist")
+        page = render(topic, json.loads(data.read_text()))
+        target = (a.out_dir or a.results_dir) / f"{topic}.md"
+        if a.check:
+            if not target.exists() or target.read_text() != page:
+                stale.append(str(target))
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(page)
+        print(f"wrote {target}")
+    for path in stale:
+        print(f"{path}: out of date with its results file; run {' '.join(['python scripts/gen_results.py', *a.topics])}",
+              file=sys.stderr)
+    return 1 if stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

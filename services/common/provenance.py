@@ -1,0 +1,62 @@
+"""Where a published figure came from, and the pages under docs/results/ that show it.
+
+A topic's results file ``docs/results/<topic>.json`` holds the measurements with the command that
+made them and the commit the code ran at (``source``); ``docs/results/<topic>.md`` is rendered
+from it and never edited (``python scripts/gen_results.py`` renders them all; ``--check`` says
+which are out of date). :func:`page_header` is the head every such page shares.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+#: The folder of the results files and their pages.
+RESULTS_DIR = Path(__file__).resolve().parents[2] / "docs" / "results"
+#: The command that renders every page from its results file.
+RENDER_COMMAND = "python scripts/gen_results.py"
+
+
+def git_source(root: Path) -> dict[str, Any]:
+    """The commit the code ran at, and whether the tree had uncommitted changes ("" outside git)."""
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30,
+                                  check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
+def provenance(command: str, root: Path) -> dict[str, Any]:
+    """What every results file records about its run: the command, the commit, the date."""
+    return {"command": command, "source": git_source(root), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
+def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
+    """The head of a generated page: what it is generated from and by which command, and the run's
+    command and commit as its results file records them."""
+    src = doc.get("source") or {}
+    commit = str(src.get("commit") or "unknown")
+    dirty = " (with uncommitted changes)" if src.get("dirty") else ""
+    lines = [f"# {title} (generated)", "",
+             f"Generated from [`{topic}.json`]({topic}.json) by `{RENDER_COMMAND} {topic}`; do not edit by hand.", "",
+             f"- measured by: `{doc.get('command', 'unknown')}`",
+             f"- commit: `{commit[:12]}`{dirty}" + (f", {doc['date']}" if doc.get("date") else "")]
+    if src.get("note"):
+        lines.append(f"- {src['note']}")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(topic: str, doc: Mapping[str, Any], page: str, directory: Path = RESULTS_DIR) -> list[Path]:
+    """Write ``<topic>.json`` and its page ``<topic>.md`` into ``directory``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    data, md = directory / f"{topic}.json", directory / f"{topic}.md"
+    data.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    md.write_text(page)
+    return [data, md]

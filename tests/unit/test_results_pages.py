@@ -1,0 +1,102 @@
+"""docs/results/: every page is what its results file renders (regenerated in a temp dir and
+compared), every results file belongs to a known topic, and each topic's renderer works on a
+results file of the shape its command writes."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "docs" / "results"
+
+
+def _script(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"_test_{name}", ROOT / "scripts" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+gen = _script("gen_results")
+
+
+def test_every_results_file_has_a_topic_and_a_page() -> None:
+    files = sorted(RESULTS.glob("*.json"))
+    assert files, "docs/results/ holds no results file"
+    for f in files:
+        assert f.stem in gen.TOPICS, f"{f.name}: no topic renders it (scripts/gen_results.py TOPICS)"
+        assert f.with_suffix(".md").exists(), f"{f.name}: its page {f.stem}.md is missing"
+        doc = json.loads(f.read_text())
+        assert doc.get("command"), f"{f.name} does not say which command measured it"
+    for page in RESULTS.glob("*.md"):
+        assert page.name == "README.md" or page.with_suffix(".json").exists(), f"{page.name} has no results file"
+
+
+def test_the_pages_are_up_to_date_with_their_results_files(tmp_path: Path) -> None:
+    assert gen.main(["--out-dir", str(tmp_path)]) == 0
+    for f in sorted(RESULTS.glob("*.json")):
+        fresh = (tmp_path / f"{f.stem}.md").read_text()
+        assert fresh == f.with_suffix(".md").read_text(), (
+            f"docs/results/{f.stem}.md is out of date with {f.name}: run python scripts/gen_results.py {f.stem}")
+        assert "(generated)" in fresh.split("\n", 1)[0] and "do not edit by hand" in fresh
+
+
+def test_check_finds_a_stale_page_and_from_publishes_a_file(tmp_path: Path) -> None:
+    results = tmp_path / "results"
+    shutil.copytree(RESULTS, results)
+    assert gen.main(["--results-dir", str(results), "--check"]) == 0
+    (results / "oracle.md").write_text("typed by hand\n")
+    assert gen.main(["--results-dir", str(results), "--check"]) == 1
+    doc = json.loads((results / "oracle.json").read_text())
+    doc["episodes"] = doc["episodes"][:3]
+    (tmp_path / "run.json").write_text(json.dumps(doc))
+    assert gen.main(["--results-dir", str(results), "oracle", "--from", str(tmp_path / "run.json")]) == 0
+    assert "Episodes run: 3 of 1500 planned" in (results / "oracle.md").read_text()
+    (results / "stray.json").write_text("{}")
+    with pytest.raises(SystemExit):
+        gen.main(["--results-dir", str(results), "--check"])
+
+
+_SOURCE = {"command": "c", "source": {"commit": "0123456789abcdef", "dirty": True}, "date": "d"}
+
+
+def test_the_oracle_page_counts_per_task_and_suite() -> None:
+    rows = [{"suite": "libero_goal", "task": 0, "init": i, "seed": 0, "instruction": "open it", "success": i != 1,
+             "steps": 100 + i, "first_missing": "" if i != 1 else "open(x)", "wall_s": 1.0} for i in range(3)]
+    page = gen.render("oracle", {**_SOURCE, "planned": 3, "seed": 0, "episodes": rows})
+    assert "| libero_goal | 0 | open it | 2/3 |" in page and "`open(x)` (1)" in page
+    assert "commit: `0123456789ab` (with uncommitted changes), d" in page
+
+
+def test_the_harness_page_pairs_the_conditions() -> None:
+    def row(cond: str, success: bool) -> dict:
+        return {"suite": "libero_goal", "task": 6, "seed": 1, "condition": cond, "success": success,
+                "first_missing_milestone": "" if success else "grasped(x)", "policy_actions": 30,
+                "recovery_actions": 10 if cond == "harness" else 0, "kinds": ["regrasp"] if cond == "harness" else [],
+                "outcomes": ["handed_back: ok"] if cond == "harness" else [],
+                "interventions_by_kind": {"regrasp": 1} if cond == "harness" else {}}
+
+    doc = {**_SOURCE, "harness": "examples/h", "content_hash": "ab" * 32, "model": "m", "checkpoint": "ck",
+           "execute_steps": 4, "seeds": "1", "wall_s": 60.0, "rows": [row("bare", False), row("harness", True)]}
+    page = gen.render("harness", doc)
+    assert "| libero_goal | 6 | harness | 1/1 |" in page and "| libero_goal | 6 | 1 | no | grasped(x) | yes | - | 30/40 |" in page
+
+
+def test_the_bench_rollout_page_from_its_episodes() -> None:
+    def run(wall: float, n: int) -> dict:
+        return {"wall_s": wall, "episodes": [{"index": i, "success": True, "steps": 100, "latency_s": 1.0,
+                                              "build_s": 0.0} for i in range(n)]}
+
+    doc = {**_SOURCE, "machine": "m", "load": [1.0, 2.0], "setup": {"stack_up_s": 5.0}, "max_steps": 300,
+           "episodes_per_point": 4, "naive_episodes": 2, "repeats": 1,
+           "points": [{"mode": "naive", "concurrency": 1, "runs": [run(4.0, 2)]},
+                      {"mode": "run_episode", "concurrency": 4, "runs": [run(2.0, 4)]}]}
+    page = gen.render("bench-rollout", doc)
+    assert "| naive | 1 | 2 | 100% (2/2) | 30.0 | 1.00x |" in page and "| run_episode | 4 | 4 |" in page
