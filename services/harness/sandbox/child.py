@@ -63,13 +63,16 @@ def _preload() -> None:
     nothing can be read from disk)."""
     import pkgutil
 
+    import services.common.config  # PlatformLimits reads the configuration through it
     import services.harness.package.loader
+    import services.harness.runtime.limits
     import services.harness.runtime.engine  # noqa: F401
     import services.harness.runtime.library as library
 
     for info in pkgutil.iter_modules(library.__path__, library.__name__ + "."):
         __import__(info.name)
     import collections.abc  # noqa: F401
+    import encodings.idna  # noqa: F401 - socket and str.encode look codecs up lazily
     import dataclasses  # noqa: F401
     import functools  # noqa: F401
     import itertools  # noqa: F401

@@ -82,7 +82,8 @@ class Writer:
             self.text(s)
 
     def array(self, a: np.ndarray) -> None:
-        a = np.ascontiguousarray(a)
+        if not a.flags.c_contiguous:
+            a = np.ascontiguousarray(a).reshape(a.shape)  # (ascontiguousarray makes a 0-d array 1-d)
         dt = a.dtype.str.encode()
         self.parts.append(struct.pack(f"<B{len(dt)}sB{a.ndim}I", len(dt), dt, a.ndim, *a.shape))
         self.parts.append(a.data.cast("B") if a.nbytes else b"")
