@@ -165,27 +165,38 @@ class Channel:
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
+        self.pending = b""
 
     def send(self, data: bytes) -> None:
         self.sock.sendall(data)
 
     def recv(self) -> tuple[int, memoryview]:
-        head = self._exact(5)
-        length, kind = struct.unpack("<IB", head)
+        # One read takes a whole step's message in the common case (a few KB); set-up messages
+        # (START, PUSH) may arrive several at once.
+        buf = self.pending
+        while len(buf) < 5:
+            more = self.sock.recv(1 << 16)
+            if not more:
+                raise SystemExit(0)  # the host closed the channel
+            buf += more
+        length, kind = struct.unpack_from("<IB", buf)
         if length < 1 or length > codec.MAX_MESSAGE:
             raise SystemExit(2)
-        return kind, memoryview(self._exact(length - 1))
-
-    def _exact(self, n: int) -> bytearray:
-        buf = bytearray(n)
-        view = memoryview(buf)
-        got = 0
-        while got < n:
-            r = self.sock.recv_into(view[got:])
+        total = length + 4
+        if len(buf) >= total:
+            self.pending = buf[total:]
+            return kind, memoryview(buf)[5:total]
+        self.pending = b""
+        body = bytearray(total - 5)
+        have = len(buf) - 5
+        body[:have] = buf[5:]
+        view = memoryview(body)
+        while have < len(body):
+            r = self.sock.recv_into(view[have:])
             if r == 0:
-                raise SystemExit(0)  # the host closed the channel
-            got += r
-        return buf
+                raise SystemExit(0)
+            have += r
+        return kind, view
 
 
 def _error(text: str) -> bytes:
@@ -215,7 +226,6 @@ class Host:
         self.recovery: Any = None
 
     def mark(self, index: int) -> None:
-        CELL.pack_into(self.cell, 0, -1, 0, time.monotonic())
         CELL.pack_into(self.cell, 0, index, 0, time.monotonic())
 
     def unmark(self) -> None:
@@ -308,16 +318,17 @@ class Host:
 
     # ---- the hot path ----
 
-    def _frame(self, r: codec.Reader) -> None:
+    def _frame(self, r: codec.Reader) -> dict[str, Any]:
         from services.harness.runtime.api import Frame
 
         step, obs, action, milestones = codec.decode_frame(r)
-        self.window.append(Frame(step, obs, action, milestones, self._sensor(step)))
+        cache: dict[str, Any] = {}
+        self.window.append(Frame(step, obs, action, milestones, self._sensor(step, cache)))
+        return cache
 
-    def _sensor(self, step: int) -> Callable[[str], Any]:
+    def _sensor(self, step: int, cache: dict[str, Any]) -> Callable[[str], Any]:
         from services.harness.runtime.api import Detection
 
-        cache: dict[str, Any] = {}
         chan = self.chan
 
         def perceive(query: str) -> Any:
@@ -332,15 +343,7 @@ class Host:
             kind, body = chan.recv()
             if kind == codec.ERROR:
                 raise ValueError(codec.Reader(body).text())
-            r = codec.Reader(body)
-            n = r.i64()
-            found: Any
-            if n == -1:
-                found = None
-            elif n == -2:
-                found = Detection(r.array(copy=True), r.array(copy=True))
-            else:
-                found = [Detection(r.array(copy=True), r.array(copy=True)) for _ in range(n)]
+            found = codec.decode_detections(codec.Reader(body), Detection)
             cache[query] = found
             return found
 
@@ -358,10 +361,15 @@ class Host:
     def step(self, body: memoryview) -> bytes:
         from services.harness.runtime.api import Proposal
 
+        from services.harness.runtime.api import Detection
+
         r = codec.Reader(body)
-        self._frame(r)
-        n = r.u32()
-        runs = [(r.u32(), r.u32()) for _ in range(n)]
+        cache = self._frame(r)
+        for _ in range(r.u32()):  # perception answers the host sent along
+            query = r.text()
+            cache[query] = codec.decode_detections(r, Detection)
+        flat = r.u32s(2 * r.u32())
+        runs = list(zip(flat[::2], flat[1::2]))
         window = self._window()
         w = codec.Writer()
         w.u32(len(runs))

@@ -352,11 +352,19 @@ class SandboxClient:
             return kind, codec.Reader(body)
 
     def _read(self) -> tuple[int, memoryview]:
-        head = _recv_exact(self._sock, 5)
-        length, kind = struct.unpack("<IB", head)
+        first = self._sock.recv(1 << 16)  # a whole reply in the common case
+        if not first:
+            raise ConnectionError("the sandbox closed its channel")
+        if len(first) < 5:
+            first += _recv_exact(self._sock, 5 - len(first))
+        length, kind = struct.unpack_from("<IB", first)
         if length < 1 or length > codec.MAX_REPLY:
             raise codec.WireError(f"reply of {length} bytes")
-        return kind, memoryview(_recv_exact(self._sock, length - 1))
+        if len(first) > length + 4:
+            raise codec.WireError("the sandbox sent more than one reply")
+        if len(first) == length + 4:
+            return kind, memoryview(first)[5:]
+        return kind, memoryview(first[5:] + _recv_exact(self._sock, length + 4 - len(first)))
 
     # ---- the calls ----
 
@@ -390,15 +398,19 @@ class SandboxClient:
             raise self._kill(-1, f"sending to the sandbox failed: {exc}") from None
 
     def step(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str],
-             runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float], perceive: Perceive | None = None
-             ) -> list[CriticResult]:
-        """Append a frame to the child's window and run the critics ``runs`` ((index, time in CPU))."""
+             runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float], perceive: Perceive | None = None,
+             prefetched: Sequence[tuple[str, Any]] = ()) -> list[CriticResult]:
+        """Append a frame to the child's window and run the critics ``runs`` ((index, time in CPU)).
+        ``prefetched``: perception answers for this frame, sent along (a query the child asks
+        that is not among them costs a round trip through ``perceive``)."""
         w = codec.Writer()
         codec.encode_frame(w, step, obs, action, milestones)
+        w.u32(len(prefetched))
+        for query, found in prefetched:
+            w.text(query)
+            codec.encode_detections(w, found)
         w.u32(len(runs))
-        for index, suspect in runs:
-            w.u32(index)
-            w.u32(1 if suspect else 0)
+        w.parts.append(struct.pack(f"<{2 * len(runs)}I", *(v for i, s in runs for v in (i, 1 if s else 0))))
         cap = sum(hard_limit(i) for i, _ in runs) + 2.0
         kind, r = self._call(w.message(codec.STEP), hard_limit, cap, perceive)
         if kind != codec.RESULTS:

@@ -39,6 +39,7 @@ MAX_MESSAGE = 64 << 20
 #: Most bytes a child's reply may take: larger is a protocol violation.
 MAX_REPLY = 1 << 20
 
+_U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _HEAD = struct.Struct("<IB")
 _I64 = struct.Struct("<q")
@@ -89,40 +90,102 @@ class Writer:
         self.parts.append(a.data.cast("B") if a.nbytes else b"")
 
     def arrays(self, named: Mapping[str, np.ndarray]) -> None:
+        """Named arrays: per array a header (name, dtype, shape; cached, the same every step) and
+        the raw bytes."""
         self.u32(len(named))
+        parts = self.parts
         for k, v in named.items():
-            self.text(k)
-            self.array(np.asarray(v))
+            a = v if isinstance(v, np.ndarray) and v.flags.c_contiguous else _contiguous(np.asarray(v))
+            key = (k, a.dtype, a.shape)
+            head = _HEADERS.get(key)
+            if head is None:
+                head = _header(k, a)
+                if len(_HEADERS) < 4096:
+                    _HEADERS[key] = head
+            parts.append(head)
+            if a.nbytes:
+                parts.append(a.data.cast("B"))
 
     def message(self, kind: int) -> bytes:
         body = b"".join(self.parts)
         return _HEAD.pack(len(body) + 1, kind) + body
 
 
+_HEADERS: dict[tuple[str, np.dtype[Any], tuple[int, ...]], bytes] = {}
+_PARSED: dict[bytes, tuple[str, np.dtype[Any], tuple[int, ...], int]] = {}
+
+
+def _contiguous(a: np.ndarray) -> np.ndarray:
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a).reshape(a.shape)
+
+
+def _header(name: str, a: np.ndarray) -> bytes:
+    """``u16 length | name | dtype | ndim | shape``, then the payload's byte count."""
+    n, dt = name.encode(), a.dtype.str.encode()
+    body = struct.pack(f"<H{len(n)}sB{len(dt)}sB{a.ndim}I", len(n), n, len(dt), dt, a.ndim, *a.shape)
+    return struct.pack("<H", len(body)) + body + _U32.pack(a.nbytes)
+
+
+def _parse_header(body: bytes) -> tuple[str, np.dtype[Any], tuple[int, ...], int]:
+    try:
+        (n,) = struct.unpack_from("<H", body, 0)
+        name = body[2 : 2 + n].decode()
+        pos = 2 + n
+        dl = body[pos]
+        dt = np.dtype(body[pos + 1 : pos + 1 + dl].decode("ascii"))
+        pos += 1 + dl
+        ndim = body[pos]
+        shape = struct.unpack_from(f"<{ndim}I", body, pos + 1)
+        if pos + 1 + 4 * ndim != len(body):
+            raise WireError("array header has trailing bytes")
+    except (struct.error, IndexError, UnicodeDecodeError, TypeError, ValueError) as exc:
+        raise WireError(f"bad array header: {exc}") from None
+    if dt.hasobject:
+        raise WireError("object arrays are not allowed")
+    count = 1
+    for d in shape:
+        count *= d
+    return name, dt, tuple(shape), count * dt.itemsize
+
+
 class Reader:
     """Reads a payload back; every read is bounds-checked."""
 
-    __slots__ = ("buf", "pos")
+    __slots__ = ("buf", "pos", "end")
 
     def __init__(self, buf: bytes | memoryview) -> None:
         self.buf = memoryview(buf)
         self.pos = 0
+        self.end = len(self.buf)
 
     def _take(self, n: int) -> memoryview:
-        if n < 0 or self.pos + n > len(self.buf):
-            raise WireError(f"message truncated at byte {self.pos} (wanted {n} more of {len(self.buf)})")
-        out = self.buf[self.pos : self.pos + n]
-        self.pos += n
-        return out
+        pos = self.pos
+        if n < 0 or pos + n > self.end:
+            raise WireError(f"message truncated at byte {pos} (wanted {n} more of {self.end})")
+        self.pos = pos + n
+        return self.buf[pos : pos + n]
+
+    def _at(self, size: int) -> int:
+        pos = self.pos
+        if pos + size > self.end:
+            raise WireError(f"message truncated at byte {pos} (wanted {size} more of {self.end})")
+        self.pos = pos + size
+        return pos
 
     def u32(self) -> int:
-        return int(_U32.unpack(self._take(4))[0])
+        return int(_U32.unpack_from(self.buf, self._at(4))[0])
+
+    def u32s(self, n: int) -> tuple[int, ...]:
+        """``n`` u32 values at once."""
+        if n < 0 or n > 1 << 20:
+            raise WireError(f"{n} values")
+        return struct.unpack_from(f"<{n}I", self.buf, self._at(4 * n))
 
     def i64(self) -> int:
-        return int(_I64.unpack(self._take(8))[0])
+        return int(_I64.unpack_from(self.buf, self._at(8))[0])
 
     def f64(self) -> float:
-        return float(_F64.unpack(self._take(8))[0])
+        return float(_F64.unpack_from(self.buf, self._at(8))[0])
 
     def text(self, limit: int = 1 << 16) -> str:
         n = self.u32()
@@ -152,7 +215,20 @@ class Reader:
 
     def arrays(self) -> dict[str, np.ndarray]:
         n = self.u32()
-        return {self.text(): self.array() for _ in range(n)}
+        out = {}
+        for _ in range(n):
+            (hl,) = _U16.unpack_from(self.buf, self._at(2))
+            head = bytes(self._take(hl))
+            parsed = _PARSED.get(head)
+            if parsed is None:
+                parsed = _parse_header(head)
+                if len(_PARSED) < 4096:
+                    _PARSED[head] = parsed
+            name, dt, shape, nbytes = parsed
+            if self.u32() != nbytes:
+                raise WireError(f"array {name}: byte count does not match its shape")
+            out[name] = np.frombuffer(self._take(nbytes), dtype=dt).reshape(shape)
+        return out
 
     def done(self) -> None:
         if self.pos != len(self.buf):
@@ -201,8 +277,14 @@ def decode_proposal(r: Reader) -> tuple[str, str, dict[str, float]]:
 
 
 def pack_detections(found: Any) -> bytes:
-    """A perception answer: -1 for None, -2 then one box for a single Detection, else a list."""
+    """A perception answer as a message of its own."""
     w = Writer()
+    encode_detections(w, found)
+    return w.message(PERCEPT)
+
+
+def encode_detections(w: Writer, found: Any) -> None:
+    """A perception answer: -1 for None, -2 then one box for a single Detection, else a list."""
     if found is None:
         w.i64(-1)
     elif isinstance(found, list):
@@ -214,4 +296,15 @@ def pack_detections(found: Any) -> bytes:
         w.i64(-2)
         w.array(np.asarray(found.pos, dtype=np.float64))
         w.array(np.asarray(found.box, dtype=np.float64))
-    return w.message(PERCEPT)
+
+
+def decode_detections(r: Reader, detection: Any) -> Any:
+    """The inverse of :func:`encode_detections`; ``detection`` builds one (api.Detection)."""
+    n = r.i64()
+    if n == -1:
+        return None
+    if n == -2:
+        return detection(r.array(copy=True), r.array(copy=True))
+    if n < 0 or n > 4096:
+        raise WireError(f"{n} detections")
+    return [detection(r.array(copy=True), r.array(copy=True)) for _ in range(n)]

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from services.harness.runtime.api import Frame, Proposal, Window
+from services.harness.runtime.perception import QUERIES
 from services.harness.runtime.library.recoveries import FAILED, RUNNING, EpisodeMemory, PolicyUnder
 from services.harness.sandbox import codec
 from services.harness.sandbox.client import CallFailed, CriticResult, Loaded, SandboxClient, SandboxError, SandboxLimits
@@ -36,6 +37,8 @@ class SandboxedCode:
         self._client: SandboxClient | None = None
         self._episode: tuple[str, tuple[str, ...]] = ("", ())
         self.respawns = 0
+        #: Perception queries the package's critics asked, answered with every frame from then on.
+        self._queries: list[str] = []
         loaded = self._spawn()
         self.critics = loaded.critics
         self.callables = loaded.callables
@@ -94,7 +97,19 @@ class SandboxedCode:
         """Send the newest frame of ``frames`` and run the critics ``runs`` ((index, timed in CPU))."""
         client = self._live(frames)
         f = frames[-1]
-        return client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, _perceiver(frames))
+        # The queries the critics asked before are answered along with the frame (one round trip
+        # per step, not one per query); a new query costs one round trip and is learned.
+        prefetched = [(q, f.perceive(q)) for q in self._queries]
+        served = _perceiver(frames)
+        learned = self._queries
+
+        def perceive(step: int, query: str) -> Any:
+            found = served(step, query)
+            if step == f.step and query in QUERIES and query not in learned:
+                learned.append(query)
+            return found
+
+        return client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, perceive, prefetched)
 
     def recovery(self, ref: str, params: Mapping[str, Any], hard_limit_s: float,
                  frames: Callable[[], Sequence[Frame]]) -> "RemoteRecovery":
