@@ -192,3 +192,19 @@ def critic_spin(window, params):
     assert max(bad_times) < 0.2 + 0.5  # killed at the hard limit (plus scheduling on a busy machine)
     assert max(during) < 0.1, (statistics.median(alone), max(during))
     assert statistics.median(during) < statistics.median(alone) * 3 + 0.002
+
+
+def test_the_sandbox_is_on_unless_turned_off_explicitly() -> None:
+    from services.common.config import ConfigError
+    from services.env_worker.harness_loop import HarnessSource
+    from services.harness.sandbox.client import SandboxLimits, enabled
+
+    assert enabled({}) and enabled({"ZETTA_HARNESS_SANDBOX": "on"})
+    assert not enabled({"ZETTA_HARNESS_SANDBOX": "off"})
+    with pytest.raises(ConfigError, match="ZETTA_HARNESS_SANDBOX"):
+        enabled({"ZETTA_HARNESS_SANDBOX": "maybe"})
+    assert SandboxLimits.from_env({"ZETTA_SANDBOX_MEMORY_MB": "256"}).memory_mb == 256
+    with pytest.raises(ConfigError):
+        SandboxLimits.from_env({"ZETTA_SANDBOX_MEMORY_MB": "1"})
+    # The env worker checks a package's tools but imports them only with the sandbox off.
+    assert HarnessSource().sandboxed and not HarnessSource(sandboxed=False).sandboxed

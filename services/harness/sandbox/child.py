@@ -217,6 +217,9 @@ class Host:
 
         self.chan = chan
         self.cell = cell
+        view = memoryview(cell)
+        self._cell_index = view[0:4].cast("i")  # the layout of CELL: index, padding, start
+        self._cell_start = view[8:16].cast("d")
         self.critics: list[tuple[str, Callable[[Any], Any]]] = []
         self.modules: dict[str, Any] = {}
         self.window: deque[Any] = deque(maxlen=32)
@@ -226,10 +229,11 @@ class Host:
         self.recovery: Any = None
 
     def mark(self, index: int) -> None:
-        CELL.pack_into(self.cell, 0, index, 0, time.monotonic())
+        self._cell_start[0] = time.monotonic()  # the start first: the host reads the index, then the start
+        self._cell_index[0] = index
 
     def unmark(self) -> None:
-        CELL.pack_into(self.cell, 0, -1, 0, 0.0)
+        self._cell_index[0] = -1
 
     def serve(self) -> None:
         handlers: dict[int, Callable[[memoryview], bytes]] = {
