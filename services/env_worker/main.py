@@ -57,7 +57,7 @@ async def main() -> None:
     SandboxLimits.from_env()
     if sandbox.enabled():
         # Before any family import and before threads: the zygote every harness sandbox child is
-        # forked from (it imports numpy and the runtime once, 1-3 s).
+        # forked from, launched now: it imports numpy and the runtime (1-3 s) while the worker starts.
         sandbox.start_zygote()
     else:
         log.warning("ZETTA_HARNESS_SANDBOX=off: harness package code runs inside this process (trusted code only)")

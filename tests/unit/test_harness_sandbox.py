@@ -208,3 +208,19 @@ def test_the_sandbox_is_on_unless_turned_off_explicitly() -> None:
         SandboxLimits.from_env({"ZETTA_SANDBOX_MEMORY_MB": "1"})
     # The env worker checks a package's tools but imports them only with the sandbox off.
     assert HarnessSource().sandboxed and not HarnessSource(sandboxed=False).sandboxed
+
+
+def test_a_dead_zygote_is_replaced_at_the_next_spawn() -> None:
+    from services.harness.sandbox.client import SandboxClient, start_zygote, zygote
+
+    start_zygote(wait=True)
+    proc = zygote()._proc
+    assert proc is not None
+    proc.kill()
+    proc.wait()
+    child = SandboxClient()
+    try:
+        assert child.isolation["uid"] == 65534 or child.isolation["degraded"]
+        assert zygote()._proc is not proc
+    finally:
+        child.close()

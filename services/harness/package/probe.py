@@ -53,7 +53,7 @@ def start_fork_server() -> None:
     from services.harness.sandbox import client as sandbox
 
     if sandbox.enabled():
-        sandbox.start_zygote()
+        sandbox.start_zygote(wait=True)
     else:
         multiprocessing.forkserver.ensure_running()
 

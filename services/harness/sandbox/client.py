@@ -127,8 +127,12 @@ class Zygote:
         self._ctrl: socket.socket | None = None
         self.network_degraded = ""
         self.scratch_base = ""
+        self._ready = False
 
-    def _start(self) -> None:
+    def _launch(self) -> None:
+        """Start the zygote process (it imports numpy and the runtime meanwhile)."""
+        if self._ctrl is not None:
+            self._ctrl.close()
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         env = dict(os.environ)
         paths = [str(_ROOT), str(_ROOT / "clients" / "python")]
@@ -139,14 +143,27 @@ class Zygote:
         )
         theirs.close()
         ours.settimeout(120.0)
+        self._ctrl = ours
+        self._ready = False
+
+    def _start(self) -> None:
+        """A running, ready zygote: launched if need be, then waited for."""
+        if self._proc is None or self._proc.poll() is not None:
+            self._launch()
+        elif self._ready:
+            return
+        ours, proc = self._ctrl, self._proc
+        assert ours is not None and proc is not None
         try:
             head = _recv_exact(ours, 5)
             length, kind = struct.unpack("<IB", head)
             body = _recv_exact(ours, length - 1)
         except (OSError, ConnectionError) as exc:
-            self._proc.kill()
+            proc.kill()
+            proc.wait()
+            self._proc = None
             raise SandboxError(-1, f"the sandbox zygote did not start: {exc}") from None
-        self._ctrl = ours
+        self._ready = True
         self.network_degraded = body.decode()
         base = Path(tempfile.mkdtemp(prefix="zetta-sandbox-"))
         base.chmod(0o711)  # children (uid nobody) must traverse it to their own directory
@@ -158,8 +175,7 @@ class Zygote:
     def spawn(self, limits: SandboxLimits) -> tuple[int, socket.socket, mmap.mmap]:
         """A new child: its pid, the host's end of its channel and the shared call cell."""
         with self._lock:
-            if self._proc is None or self._proc.poll() is not None:
-                self._start()
+            self._start()
             assert self._ctrl is not None
             ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
             cell_fd = os.memfd_create("zetta-sandbox-cell")
@@ -203,11 +219,14 @@ def zygote() -> Zygote:
         return _ZYGOTE
 
 
-def start_zygote() -> None:
-    """Start the zygote now (1-3 s: it imports numpy and the runtime), not at the first reset."""
+def start_zygote(wait: bool = False) -> None:
+    """Start the zygote now (it takes 1-3 s to import numpy and the runtime, in its own process),
+    not at the first reset; ``wait`` for it to be ready."""
     z = zygote()
     with z._lock:
         if z._proc is None or z._proc.poll() is not None:
+            z._launch()
+        if wait:
             z._start()
 
 
