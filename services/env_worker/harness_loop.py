@@ -228,6 +228,8 @@ class SlotHarness:
 def bind(current: SlotHarness | None, package: LoadedPackage | None) -> SlotHarness | None:
     """The slot's harness for the next episode: reuse the runtime when the package is unchanged."""
     if package is None:
+        if current is not None:
+            current.close()  # its sandbox child
         return None
     if current is not None and current.package is package:  # HarnessSource returns one object per version
         return current
