@@ -1,14 +1,17 @@
-"""Per-step cost of a 10-critic harness next to the env step it watches, side by side in one run.
+"""Per-step cost of a 10-critic harness next to the env step it watches: package code in-process
+vs in its sandbox child, side by side in one run.
 
-One real LIBERO slot runs the scripted pick-and-place policy; each episode is run twice with the
-same key: once plain (the env worker's step loop without a harness) and once through the harness
-loop (services/env_worker/harness_loop.SlotHarness.run_chunk) with a package of 10 library
-critics and no adjudication rule, so the critics all run at every step but never take control
-and both runs execute the same actions. Printed: median env step time, median harness time per
-step (critics, window and bookkeeping) and their ratio, plus the plain vs harnessed loop time per
-step, episode by episode alternated so machine load hits both alike. Wall and thread CPU times
-are both printed: on a shared machine the CPU times are the stable ones. Target: harness < 5% of
-the env step.
+One real LIBERO slot runs the scripted pick-and-place policy; each episode is run three times with
+the same key: plain (the env worker's step loop without a harness), then through the harness loop
+(services/env_worker/harness_loop.SlotHarness.run_chunk) with the same package twice: its code run
+in this process (``ZETTA_HARNESS_SANDBOX=off``, the trusted-code opt-in) and in a sandbox child
+(the default; services/harness/sandbox/). The package has 10 package-code critics (tools/critics.py,
+each calling one library predicate) and no adjudication rule, so the critics all run at every step
+but never take control and every run executes the same actions. Printed per mode: median env step
+time, median harness time per step (critics, window, bookkeeping and, sandboxed, the round trip to
+the child) and their ratio, episodes alternated so machine load hits all modes alike. Wall and CPU
+times are both printed; the sandboxed CPU time adds the child's CPU (from /proc) to the host
+thread's. Target: harness < 5% of the env step, sandboxed included.
 
     python bench/bench_harness.py [--episodes 4] [--steps 150] [--suite libero_goal] [--task 6]
 """
@@ -39,15 +42,33 @@ CRITICS = [
     ("stalled_progress", {}), ("blocked_motion", {}),
 ]
 
-SKILL = "+++\n" + 'name = "bench-10-critics"\ndescription = "10 library critics, no rule: they only watch"\n' + "".join(
-    f'\n[[critics]]\nname = "c{i}_{name}"\npredicate = "{name}"\nevidence = "{name}"\n' for i, (name, _) in enumerate(CRITICS)
-) + "+++\nbench harness\n"
+SKILL = ('+++\nname = "bench-10-critics"\ndescription = "10 package-code critics, no rule: they only watch"\n'
+         "+++\nbench harness\n")
+
+TOOLS = """from services.harness.runtime.api import Proposal
+from services.harness.runtime.library import PREDICATES, resolve
+
+NAMES = [%s]
+PARAMS = {n: resolve(PREDICATES[n].params, {}, n) for n in NAMES}
+
+
+def _run(name, window):
+    details = PREDICATES[name].fn(window, PARAMS[name])
+    return None if details is None else Proposal("critics." + name, name, "", details)
+""" % ", ".join(repr(n) for n, _ in CRITICS) + "".join(
+    f"\n\ndef critic_{name}(window, params):\n    return _run({name!r}, window)\n" for name, _ in CRITICS)
 
 
 def write_package(root: Path) -> Path:
-    root.mkdir(parents=True, exist_ok=True)
+    (root / "tools").mkdir(parents=True, exist_ok=True)
     (root / "SKILL.md").write_text(SKILL)
+    (root / "tools" / "critics.py").write_text(TOOLS)
     return root
+
+
+def child_cpu_s(pid: int) -> float:
+    """CPU seconds a process (the sandbox child) has run, from /proc/PID/schedstat (ns)."""
+    return int(Path(f"/proc/{pid}/schedstat").read_text().split()[0]) / 1e9
 
 
 class _Hist:
@@ -106,6 +127,9 @@ def run_harnessed(slot, policy, obs, steps: int, harness: SlotHarness) -> tuple[
     return t, (time.perf_counter() - start) / max(1, n)
 
 
+MODES = ("in-process", "sandboxed")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--episodes", type=int, default=4)
@@ -118,34 +142,58 @@ def main(argv: list[str] | None = None) -> int:
     slot = family.init()
     policy = ScriptedPickPlacePolicy()
     pkg_dir = write_package(Path(tempfile.mkdtemp(prefix="bench-harness-")) / "pkg")
-    harness = SlotHarness(load_package(pkg_dir))
-    assert len(harness.runtime.critics) == 10
-    times: dict[str, list[float]] = {"env_wall": [], "env_cpu": [], "h_wall": [], "h_cpu": []}
-    loop_plain: list[float] = []
-    loop_h: list[float] = []
+    harnesses = {
+        "in-process": SlotHarness(load_package(pkg_dir, import_tools=True)),
+        "sandboxed": SlotHarness(load_package(pkg_dir, import_tools=False)),  # tools never imported here
+    }
+    assert harnesses["in-process"].runtime.sandbox is None
+    sandbox = harnesses["sandboxed"].runtime.sandbox
+    assert sandbox is not None
+    for h in harnesses.values():
+        assert len(h.runtime.critics) == 10
+    keys = ("env_wall", "env_cpu", "h_wall", "h_cpu")
+    times = {m: {k: [] for k in keys} for m in MODES}
+    child_cpu: list[float] = []
+    loop = {m: [] for m in ("plain", *MODES)}
     for ep in range(a.episodes):
         spec = ResetSpec(task=a.task, seed=ep, init_state_index=ep % 50)
         obs, _ = slot.reset(spec)
         _, per = run_plain(slot, policy, obs, a.steps)
-        loop_plain.append(per)
-        obs, instruction = slot.reset(spec)
-        harness.reset(obs, instruction, slot.milestone_names())
-        t, per = run_harnessed(slot, policy, obs, a.steps, harness)
-        for k, v in t.items():
-            times[k] += v
-        loop_h.append(per)
-        disabled = harness.runtime.report.disabled_critics
-        assert not disabled, disabled
-    med = {k: statistics.median(v) for k, v in times.items()}
-    print(f"load: {os.getloadavg()[0]:.1f} (1-min average); {a.episodes} episodes x {a.steps} steps, "
-          f"{a.suite} task {a.task}, 10 critics, {len(times['h_wall'])} harnessed steps")
-    print(f"env step, median wall / CPU      : {med['env_wall'] * 1000:7.3f} / {med['env_cpu'] * 1000:7.3f} ms")
-    print(f"harness step, median wall / CPU  : {med['h_wall'] * 1000:7.3f} / {med['h_cpu'] * 1000:7.3f} ms "
-          f"(p90 wall {np.percentile(times['h_wall'], 90) * 1000:.3f} ms)")
-    print(f"harness / env step, wall / CPU   : {med['h_wall'] / med['env_wall']:7.2%} / "
-          f"{med['h_cpu'] / med['env_cpu']:7.2%}   (target < 5%)")
-    print(f"loop per step, plain / harness   : {statistics.median(loop_plain) * 1000:.3f} / "
-          f"{statistics.median(loop_h) * 1000:.3f} ms (median over episodes; scripted policy included)")
+        loop["plain"].append(per)
+        for mode in (MODES if ep % 2 == 0 else MODES[::-1]):
+            harness = harnesses[mode]
+            obs, instruction = slot.reset(spec)
+            harness.reset(obs, instruction, slot.milestone_names())
+            c0 = child_cpu_s(sandbox.pid) if mode == "sandboxed" else 0.0
+            t, per = run_harnessed(slot, policy, obs, a.steps, harness)
+            if mode == "sandboxed":
+                child_cpu.append((child_cpu_s(sandbox.pid) - c0) / max(1, len(t["h_wall"])))
+            for k, v in t.items():
+                times[mode][k] += v
+            loop[mode].append(per)
+            disabled = harness.runtime.report.disabled_critics
+            assert not disabled, disabled
+    print(f"load: {os.getloadavg()[0]:.1f} (1-min average); {a.episodes} episodes x {a.steps} steps per mode, "
+          f"{a.suite} task {a.task}, 10 package-code critics; sandbox: uid {sandbox.isolation.get('uid')}, "
+          f"degraded: {sandbox.isolation.get('degraded') or 'no'}")
+    print(f"{'':34s} {'in-process':>22s} {'sandboxed':>22s}")
+    med = {m: {k: statistics.median(v) for k, v in times[m].items()} for m in MODES}
+    child = statistics.median(child_cpu) if child_cpu else 0.0
+
+    def row(label: str, values: list[str]) -> None:
+        print(f"{label:34s} " + " ".join(f"{v:>22s}" for v in values))
+
+    row("env step, median wall / CPU (ms)", [f"{med[m]['env_wall'] * 1e3:.3f} / {med[m]['env_cpu'] * 1e3:.3f}" for m in MODES])
+    cpu = {"in-process": med["in-process"]["h_cpu"], "sandboxed": med["sandboxed"]["h_cpu"] + child}
+    row("harness step, median wall / CPU (ms)", [f"{med[m]['h_wall'] * 1e3:.3f} / {cpu[m] * 1e3:.3f}" for m in MODES])
+    row("harness p90 wall (ms)", [f"{np.percentile(times[m]['h_wall'], 90) * 1e3:.3f}" for m in MODES])
+    row("harness / env step, wall / CPU", [f"{med[m]['h_wall'] / med[m]['env_wall']:.2%} / {cpu[m] / med[m]['env_cpu']:.2%}"
+                                          for m in MODES])
+    row("loop per step, median (ms)", [f"{statistics.median(loop[m]) * 1e3:.3f}" for m in MODES])
+    print(f"plain loop per step, median: {statistics.median(loop['plain']) * 1e3:.3f} ms (scripted policy included); "
+          f"sandbox child CPU per step: {child * 1e3:.3f} ms (in the sandboxed CPU column); target: harness < 5% of an env step")
+    for h in harnesses.values():
+        h.close()
     slot.close()
     return 0
 

@@ -14,6 +14,8 @@ from services.common.config import ConfigError
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.harness.runtime.budget import PlatformLimits
+from services.harness.sandbox import client as sandbox
+from services.harness.sandbox.client import SandboxLimits
 from services.critic.config import CriticConfig
 from services.harness.package.probe import start_fork_server
 from services.harness.package.store import PackageStore
@@ -27,6 +29,9 @@ async def main() -> None:
     logger = setup_logging("critic")
     cfg = CriticConfig.from_env()
     PlatformLimits.from_env()  # the harness time limits fail fast here, not at the first reset
+    SandboxLimits.from_env()
+    if not sandbox.enabled():
+        logger.warning("ZETTA_HARNESS_SANDBOX=off: harness package code runs inside this process (trusted code only)")
     try:
         store = PackageStore(cfg.store)
         store.check_writable()

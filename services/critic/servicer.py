@@ -35,6 +35,7 @@ from services.harness.package.probe import probe_import
 from services.harness.report_proto import report_to_proto
 from services.critic.registry import HarnessRegistry, Resolved, parse_json
 from services.harness.runtime.engine import HarnessError, HarnessRuntime
+from services.harness.sandbox import client as sandbox
 from zetta_wire.codec import TensorDecodeError, decode, decode_observation, encode
 from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
@@ -163,8 +164,11 @@ class PackageCache:
     """Loaded harness versions by content hash, least recently used evicted first: loading
     imports the tools, which Evaluate streams of the same version can share."""
 
-    def __init__(self, registry: HarnessRegistry, size: int, max_bytes: int) -> None:
+    def __init__(self, registry: HarnessRegistry, size: int, max_bytes: int, sandboxed: bool | None = None) -> None:
         self._registry = registry
+        #: Package code runs in sandbox children (ZETTA_HARNESS_SANDBOX, default on): the tools are
+        #: checked here but never imported into this process; each Evaluate stream gets a child.
+        self.sandboxed = sandbox.enabled() if sandboxed is None else sandboxed
         self._size = size
         self._max_bytes = max_bytes
         self._loaded: OrderedDict[str, LoadedPackage] = OrderedDict()
@@ -177,7 +181,7 @@ class PackageCache:
             if package is None:
                 files = await self._registry.files(resolved)
                 try:
-                    package = await asyncio.to_thread(load_files, files, self._max_bytes)
+                    package = await asyncio.to_thread(load_files, files, self._max_bytes, not self.sandboxed)
                 except PackageRejected as exc:  # stored packages passed this check at publish
                     raise ge.failed_precondition(f"{resolved.ref} no longer loads: {exc}") from None
                 self._loaded[resolved.content_hash] = package
@@ -238,9 +242,17 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
         resolved = await self.registry.resolve(start.harness, start.task)
         package = await self.cache.get(resolved)
         try:
-            runtime = HarnessRuntime(package)
+            runtime = await asyncio.to_thread(HarnessRuntime, package)  # spawns its sandbox child
         except HarnessError as exc:  # published packages passed this check; the runtime changed since
             raise ge.failed_precondition(f"{resolved.ref} does not make a runnable harness: {exc}") from None
+        try:
+            async for response in self._run(runtime, start, resolved, requests):
+                yield response
+        finally:
+            runtime.close()  # its sandbox child, if any
+
+    async def _run(self, runtime: HarnessRuntime, start: Any, resolved: Resolved,
+                   requests: AsyncIterator[critic_pb2.EvaluateRequest]) -> AsyncIterator[critic_pb2.EvaluateResponse]:
         runtime.start(start.instruction, list(start.milestone_names))
         yield critic_pb2.EvaluateResponse(
             started=critic_pb2.EvaluateStarted(manifest=manifest_message(self.registry.manifest(resolved)))

@@ -32,6 +32,7 @@ from services.harness.package.loader import load_files, unload
 from services.harness.package.model import LoadedPackage
 from services.harness.runtime.engine import Decision, EpisodeReport, HarnessError, HarnessRuntime
 from services.harness.runtime.orchestrator import POLICY
+from services.harness.sandbox import client as sandbox
 from services.harness.report_proto import report_to_proto
 from zetta_wire.v1 import types_pb2
 
@@ -48,8 +49,12 @@ class HarnessSource:
     so an edit takes effect on the next episode; an exact registry version is fetched once).
     """
 
-    def __init__(self, critic_address: str = "", timeout_s: float = 10.0, max_cached: int = 32) -> None:
+    def __init__(self, critic_address: str = "", timeout_s: float = 10.0, max_cached: int = 32,
+                 sandboxed: bool | None = None) -> None:
         self.critic_address = critic_address
+        #: Package code runs in sandbox children (ZETTA_HARNESS_SANDBOX, default on): its tools are
+        #: checked here but never imported into this process.
+        self.sandboxed = sandbox.enabled() if sandboxed is None else sandboxed
         self.timeout_s = timeout_s
         #: Loaded versions kept, least recently used first out (an evolver tries many versions).
         self.max_cached = max_cached
@@ -80,7 +85,7 @@ class HarnessSource:
             if package is not None:
                 self._by_hash.move_to_end(key)
                 return package
-        package = load_files(files)
+        package = load_files(files, import_tools=not self.sandboxed)
         with self._lock:
             self._by_hash[key] = package
             while len(self._by_hash) > self.max_cached:
@@ -143,6 +148,10 @@ class SlotHarness:
         self.names: tuple[str, ...] = ()
         self.decision = Decision(POLICY, (), None, "")
         self.finished: EpisodeReport | None = None
+
+    def close(self) -> None:
+        """Kill the runtime's sandbox child, if it has one."""
+        self.runtime.close()
 
     def reset(self, obs: Mapping[str, np.ndarray], instruction: str, milestone_names: Sequence[str]) -> None:
         """A new episode: fresh runtime state, critics run on the reset observation."""
@@ -219,10 +228,15 @@ class SlotHarness:
 def bind(current: SlotHarness | None, package: LoadedPackage | None) -> SlotHarness | None:
     """The slot's harness for the next episode: reuse the runtime when the package is unchanged."""
     if package is None:
+        if current is not None:
+            current.close()  # its sandbox child
         return None
     if current is not None and current.package is package:  # HarnessSource returns one object per version
         return current
-    return SlotHarness(package)
+    harness = SlotHarness(package)
+    if current is not None:
+        current.close()
+    return harness
 
 
 def placeholder_chunk(length: int, dim: int, dtype: np.dtype) -> np.ndarray:

@@ -11,6 +11,8 @@ from services.common.cpus import format_cpu_list, pin_process
 from services.common.logs import setup_logging
 from services.common.server import Registration, ServiceRunner, run_service
 from services.harness.runtime.budget import PlatformLimits
+from services.harness.sandbox import client as sandbox
+from services.harness.sandbox.client import SandboxLimits
 from services.env_worker.config import EnvWorkerConfig
 from services.env_worker.families import UnknownFamilyError, get_family
 from services.env_worker.membership import Membership
@@ -52,6 +54,13 @@ async def main() -> None:
     setup_logging("env_worker")
     cfg = EnvWorkerConfig.from_env()
     PlatformLimits.from_env()  # the harness time limits fail fast here, not at the first reset
+    SandboxLimits.from_env()
+    if sandbox.enabled():
+        # Before any family import and before threads: the zygote every harness sandbox child is
+        # forked from, launched now: it imports numpy and the runtime (1-3 s) while the worker starts.
+        sandbox.start_zygote()
+    else:
+        log.warning("ZETTA_HARNESS_SANDBOX=off: harness package code runs inside this process (trusted code only)")
     # Before any family import: MuJoCo and robosuite read MUJOCO_GL when they are imported.
     select_gl_backend()
     log.info("rendering: %s; OpenGL renderer: %s", gl_backend_choice().describe(), _gl_renderer())

@@ -124,6 +124,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         futures = []
         if slot.env is not None:
             futures.append(slot.executor.submit(slot.env.close))
+        if slot.harness is not None:  # its sandbox child, on the slot's thread (it may be mid-step)
+            futures.append(slot.executor.submit(slot.harness.close))
         if not self.resource_sharing:
             futures.append(slot.executor.submit(slot.family.close))  # the session's own group: its scene too
         return futures

@@ -124,11 +124,14 @@ def check_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYT
     return CheckedFiles(skill, body, tables["plans"], tables["params"], sources)
 
 
-def load_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYTES) -> LoadedPackage:
+def load_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYTES,
+               import_tools: bool = True) -> LoadedPackage:
     """Check and load a package given as bytes by relative path (what the registry stores).
 
     A manifest.json among the files supplies the version and must carry the files' content
-    hash; without one (a package still being written) the version is empty."""
+    hash; without one (a package still being written) the version is empty. ``import_tools``
+    False: the tools pass the static checks but are not imported in this process (``tools`` is
+    empty, ``sources`` holds them): a runtime built from it runs them in its sandbox child."""
     checked = check_files(files, max_bytes)
     digest = fmt.content_hash(files)
     manifest: dict[str, Any] = {}
@@ -143,7 +146,7 @@ def load_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYTE
     origin = f"{name}@{version}" if version else name
     tools: dict[str, ModuleType] = {}
     try:
-        for stem, source in checked.sources.items():
+        for stem, source in checked.sources.items() if import_tools else ():
             tools[stem] = _import_tool(stem, f"tools/{stem}.py", source, prefix, origin)
     except PackageRejected:
         for stem in tools:
@@ -163,9 +166,9 @@ def load_files(files: Mapping[str, bytes], max_bytes: int = fmt.MAX_PACKAGE_BYTE
     )
 
 
-def load_package(path: str | Path, max_bytes: int = fmt.MAX_PACKAGE_BYTES) -> LoadedPackage:
+def load_package(path: str | Path, max_bytes: int = fmt.MAX_PACKAGE_BYTES, import_tools: bool = True) -> LoadedPackage:
     """Check and load the package directory at ``path``; raises PackageRejected with every reason."""
-    return load_files(fmt.read_tree(Path(path)), max_bytes)
+    return load_files(fmt.read_tree(Path(path)), max_bytes, import_tools)
 
 
 def unload(package: LoadedPackage) -> None:

@@ -1,5 +1,10 @@
 """Import a package's tools in a child process with a deadline, before a server trusts them.
 
+With the harness sandbox on (the default, services/harness/sandbox/client.py) that child is a
+sandbox child: the package's module-level code runs as nobody, without network, in a private
+scratch root, under the sandbox's resource limits, and is killed at the deadline. With
+``ZETTA_HARNESS_SANDBOX=off`` it is a plain child forked from the fork server described below.
+
 The static checks cannot tell whether module-level code of a tool finishes (a loop, a huge
 comprehension); importing it inside a server would block that thread for good. So the registry
 imports every new package once in a short-lived child process, builds a harness runtime from it
@@ -43,9 +48,34 @@ _CTX.set_forkserver_preload(_preload())
 
 
 def start_fork_server() -> None:
-    """Start the fork server now (1-3 s: it imports the runtime), so that the first publish does
-    not wait for it."""
-    multiprocessing.forkserver.ensure_running()
+    """Start the fork server (or the sandbox zygote) now (1-3 s: it imports the runtime), so that
+    the first publish does not wait for it."""
+    from services.harness.sandbox import client as sandbox
+
+    if sandbox.enabled():
+        sandbox.start_zygote(wait=True)
+    else:
+        multiprocessing.forkserver.ensure_running()
+
+
+def _run_sandboxed(files: dict[str, bytes], timeout_s: float, max_bytes: int) -> list[tuple[str, int, str]]:
+    from services.harness.sandbox.client import CallFailed, SandboxClient, SandboxError, SandboxLimits
+
+    limits = SandboxLimits.from_env()
+    child = SandboxClient(SandboxLimits(limits.memory_mb, limits.cpu_s, limits.nofile, limits.fsize_bytes,
+                                        load_timeout_s=max(limits.load_timeout_s, timeout_s)))
+    try:
+        return child.check(files, max_bytes, timeout_s)
+    except SandboxError as exc:
+        if child.dead and "no answer" in exc.reason or "hard limit" in exc.reason:
+            raise PackageRejected(
+                [Problem("tools/", 0, f"importing the tools took longer than {timeout_s:g} s; module-level code must be quick")]
+            ) from None
+        raise PackageRejected([Problem("tools/", 0, f"import check crashed in the sandbox: {exc.reason}")]) from None
+    except CallFailed as exc:
+        raise PackageRejected([Problem("tools/", 0, f"import check failed in the sandbox: {exc}")]) from None
+    finally:
+        child.close()
 
 
 def _child(conn: Connection, files: dict[str, bytes], max_bytes: int) -> None:
@@ -90,6 +120,9 @@ def _run(files: dict[str, bytes], timeout_s: float, max_bytes: int) -> list[tupl
 async def probe_import(files: Mapping[str, bytes], timeout_s: float, max_bytes: int) -> None:
     """Load ``files`` in a child process; raises PackageRejected with its problems, or when it
     does not finish within ``timeout_s`` seconds."""
-    problems = await asyncio.to_thread(_run, dict(files), timeout_s, max_bytes)
+    from services.harness.sandbox import client as sandbox
+
+    run = _run_sandboxed if sandbox.enabled() else _run
+    problems = await asyncio.to_thread(run, dict(files), timeout_s, max_bytes)
     if problems:
         raise PackageRejected([Problem(p, line, reason) for p, line, reason in problems])

@@ -43,6 +43,9 @@ from services.harness.runtime.limits import INTERVENTION_CAP
 from services.harness.runtime.orchestrator import POLICY, Orchestrator, Rule
 from services.harness.runtime.perception import Perception, episode_seed, noise_from_table
 from services.harness.runtime.reentry import ReentryContract
+from services.harness.sandbox import codec as sandbox_codec
+from services.harness.sandbox.client import CallFailed, SandboxError, SandboxLimits
+from services.harness.sandbox.host import SandboxedCode, to_proposal
 
 _HOLD = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 #: The outcome of an intervention still in control when the episode succeeded: the recovery, not
@@ -59,9 +62,11 @@ class Critic:
     """A runtime critic: ``fn(window)`` returns a Proposal or None; switched off on misbehaviour."""
 
     name: str
-    fn: Callable[[Window], Any]
+    fn: Callable[[Window], Any] | None
     budget: CallBudget
     enabled: bool = True
+    #: Index of the critic in the runtime's sandbox child (package code), -1 for one run here.
+    remote: int = -1
 
 
 @dataclass(frozen=True)
@@ -191,7 +196,9 @@ def _library_recovery(name: str, overrides: Mapping[str, Any], mode: str) -> Cal
     return lambda: spec.factory(params)
 
 
-def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage) -> Plan:
+def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage,
+          remote: Callable[[str, Mapping[str, Any]], Recovery] | None = None,
+          remote_callables: frozenset[str] = frozenset()) -> Plan:
     known = {"recovery", "params", "max_steps", "max_uses", "clear_when", "clear_params", "description"}
     unknown = sorted(set(table) - known)
     if unknown:
@@ -206,10 +213,16 @@ def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage) -> Plan:
         build = lambda: Chain([make() for make in parts])  # noqa: E731 - a fresh chain per intervention
     elif isinstance(recovery, str) and ":" in recovery:
         stem, attr = recovery.split(":", 1)
-        factory = getattr(package.tools.get(stem), attr, None)
-        if not callable(factory):
-            raise HarnessError(f"playbook {mode}: tools/{stem}.py has no recovery factory {attr!r}")
-        build = lambda: factory(dict(params))  # noqa: E731
+        if remote is not None:  # package code runs in the runtime's sandbox child
+            if recovery not in remote_callables:
+                raise HarnessError(f"playbook {mode}: tools/{stem}.py has no recovery factory {attr!r}")
+            make_remote = remote
+            build = lambda: make_remote(recovery, dict(params))  # noqa: E731
+        else:
+            factory = getattr(package.tools.get(stem), attr, None)
+            if not callable(factory):
+                raise HarnessError(f"playbook {mode}: tools/{stem}.py has no recovery factory {attr!r}")
+            build = lambda: factory(dict(params))  # noqa: E731
     elif isinstance(recovery, str):
         build = _library_recovery(recovery, params, mode)
     else:
@@ -234,9 +247,19 @@ def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage) -> Plan:
 
 
 class HarnessRuntime:
-    """Runs one harness package over the episodes of one slot (single-threaded: the slot's thread)."""
+    """Runs one harness package over the episodes of one slot (single-threaded: the slot's thread).
 
-    def __init__(self, package: LoadedPackage) -> None:
+    ``sandboxed``: the package's code (tools/*.py: code critics, package recoveries) runs in a
+    sandbox child process (services/harness/sandbox/) instead of this process; library critics
+    and recoveries (platform code) run here either way. None (the default): sandboxed when the
+    package's tools were not imported in this process (``load_files(..., import_tools=False)``,
+    what the env worker and the critic service do unless ``ZETTA_HARNESS_SANDBOX=off``).
+    Call :meth:`close` when done with a sandboxed runtime (its child is killed when the runtime
+    is collected otherwise).
+    """
+
+    def __init__(self, package: LoadedPackage, sandboxed: bool | None = None,
+                 sandbox_limits: SandboxLimits | None = None) -> None:
         self.package = package
         skill = package.skill
         runtime = skill.get("runtime", {})
@@ -267,20 +290,64 @@ class HarnessRuntime:
             self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
         except (ValueError, ParamError) as exc:
             raise HarnessError(str(exc)) from None
-        self._critic_defs: list[tuple[str, Callable[[Window], Any], float | None]] = [
+        self._critic_defs: list[tuple[str, Callable[[Window], Any] | None, float | None]] = [
             _library_critic(e) for e in skill.get("critics", [])
         ]
-        self._critic_defs += [(n, fn, None) for n, fn in _code_critics(package)]
+        if sandboxed is None:
+            sandboxed = bool(set(package.sources) - set(package.tools))
+        self._code: SandboxedCode | None = None
+        self._remote: dict[str, int] = {}
+        if sandboxed and package.sources:
+            try:
+                self._code = SandboxedCode(package.sources, package.params, self.window_size, sandbox_limits)
+            except (SandboxError, CallFailed) as exc:
+                raise HarnessError(f"the package's tools do not load in the sandbox: {exc}") from None
+            self._remote = {n: i for i, n in enumerate(self._code.critics)}
+            self._critic_defs += [(n, None, None) for n in self._code.critics]
+        else:
+            self._critic_defs += [(n, fn, None) for n, fn in _code_critics(package)]
         names = [n for n, _, _ in self._critic_defs]
         if len(set(names)) != len(names):
+            self.close()
             raise HarnessError(f"critic names must be unique, got {names}")
+        try:
+            self._build_plans(package, skill)
+        except HarnessError:
+            self.close()
+            raise
+        #: Shape of one env action, when the caller knows it: a recovery action of another shape
+        #: fails its intervention instead of reaching the env.
+        self.action_shape: tuple[int, ...] | None = None
+        self.start("", [])
+
+    @property
+    def sandbox(self) -> SandboxedCode | None:
+        """The sandbox child running this runtime's package code (None: in-process or no code)."""
+        return self._code
+
+    def close(self) -> None:
+        """Kill the sandbox child, if any (idempotent)."""
+        if self._code is not None:
+            self._code.close()
+
+    def _remote_recovery(self, ref: str, params: Mapping[str, Any]) -> Recovery:
+        assert self._code is not None
+        return self._code.recovery(ref, params, self.hard_limit_s, lambda: tuple(self._frames))  # type: ignore[return-value]
+
+    def _build_plans(self, package: LoadedPackage, skill: Mapping[str, Any]) -> None:
+        remote = self._remote_recovery if self._code is not None else None
+        callables = self._code.callables if self._code is not None else frozenset()
+        #: Whether a playbook runs package code (the sandbox child then needs every frame).
+        self._remote_plans = remote is not None and any(
+            isinstance(t, Mapping) and isinstance(t.get("recovery"), str) and ":" in t["recovery"]
+            for tables in package.plans.values() for t in tables.values())
         self.plans: dict[str, Plan] = {}
         for stem, tables in sorted(package.plans.items()):
             for mode, table in tables.items():
                 if isinstance(table, Mapping) and "recovery" in table:
                     if mode in self.plans or mode == POLICY:
                         raise HarnessError(f"playbook name {mode!r} (plans/{stem}.toml) is reserved or used twice")
-                    self.plans[mode] = _plan(mode, table, package)
+                    self.plans[mode] = _plan(mode, table, package, remote, callables)
         try:
             rules = [Rule.from_table(t) for t in skill.get("adjudication", [])]
         except ValueError as exc:
@@ -289,10 +356,6 @@ class HarnessRuntime:
             if rule.mode not in self.plans:
                 raise HarnessError(f"adjudication rule for {rule.evidence!r} grants mode {rule.mode!r}, which no plan defines")
         self.orchestrator = Orchestrator(rules)
-        #: Shape of one env action, when the caller knows it: a recovery action of another shape
-        #: fails its intervention instead of reaching the env.
-        self.action_shape: tuple[int, ...] | None = None
-        self.start("", [])
 
     # ---- episode lifecycle -------------------------------------------------------------------
 
@@ -301,9 +364,12 @@ class HarnessRuntime:
         self.instruction = instruction
         self.milestone_names = tuple(milestone_names)
         self.critics = [
-            Critic(n, fn, CallBudget(min(b, self.limits.budget_s) if b is not None else self.budget_s, self.hard_limit_s))
+            Critic(n, fn, CallBudget(min(b, self.limits.budget_s) if b is not None else self.budget_s, self.hard_limit_s),
+                   remote=self._remote.get(n, -1) if fn is None else -1)
             for n, fn, b in self._critic_defs
         ]
+        if self._code is not None:
+            self._code.start(instruction, self.milestone_names)
         self._frames: deque[Frame] = deque(maxlen=self.window_size)
         self._memory = EpisodeMemory()
         self._uses: Counter[str] = Counter()
@@ -371,22 +437,65 @@ class HarnessRuntime:
             return Decision(self._mode, proposals, None, self._active.id, next_action.instruction)
         return Decision(self._mode, proposals, next_action, self._active.id)
 
+    def _disable(self, critic: Critic, error: str) -> None:
+        critic.enabled = False
+        self.report.disabled_critics.append(DisabledCritic(critic.name, self._step, error))
+
     def _run_critics(self, window: Window) -> tuple[Proposal, ...]:
-        out = []
-        for critic in self.critics:
+        found: dict[int, Proposal] = {}
+        remote: dict[int, tuple[int, Critic]] = {}
+        for i, critic in enumerate(self.critics):
             if not critic.enabled:
+                continue
+            if critic.fn is None:
+                remote[critic.remote] = (i, critic)
                 continue
             result, error = guarded_call(critic.fn, (window,), critic.budget)
             if not error and result is not None and not isinstance(result, Proposal):
                 error = f"returned {type(result).__name__}, not a Proposal or None"
             if error:
-                critic.enabled = False
-                self.report.disabled_critics.append(DisabledCritic(critic.name, self._step, error))
+                self._disable(critic, error)
                 continue
             if result is not None:
-                out.append(result)
+                found[i] = result
+        if self._code is not None and (remote or self._remote_plans):
+            self._run_remote(remote, found)
+        out = tuple(found[i] for i in sorted(found))
         self.report.proposals += len(out)
-        return tuple(out)
+        return out
+
+    def _run_remote(self, remote: dict[int, tuple[int, Critic]], found: dict[int, Proposal]) -> None:
+        """The package's critics, in the sandbox child: one round trip per step for all of them."""
+        assert self._code is not None
+        runs = [(r, c.budget.suspect) for r, (_, c) in remote.items()]
+
+        def hard_limit(r: int) -> float:
+            hit = remote.get(r)
+            return hit[1].budget.hard_limit_s if hit is not None else self.hard_limit_s
+
+        try:
+            results = self._code.step(tuple(self._frames), runs, hard_limit)
+        except (SandboxError, CallFailed) as exc:
+            hit = remote.get(exc.index) if isinstance(exc, SandboxError) else None
+            for _, critic in [hit] if hit is not None else list(remote.values()):
+                self._disable(critic, str(exc))
+            return
+        for res in results:
+            i, critic = remote[res.index]
+            budget = critic.budget
+            if res.kind == sandbox_codec.R_ERROR:
+                self._disable(critic, res.error)
+                continue
+            if res.elapsed_s > budget.budget_s:
+                if budget.suspect:
+                    self._disable(critic, f"used {res.elapsed_s * 1000:.1f} ms of CPU, over its "
+                                          f"{budget.budget_s * 1000:.1f} ms budget")
+                    continue
+                budget.suspect = True
+            else:
+                budget.suspect = False
+            if res.kind == sandbox_codec.R_PROPOSAL:
+                found[i] = to_proposal(critic.name, res)
 
     def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]
                ) -> np.ndarray | PolicyUnder | None:

@@ -41,9 +41,24 @@ def allowed(name: str) -> bool:
     return name in ALLOWED or any(p.match(name) for p in ALLOWED_PATTERNS)
 
 
+#: allowed() by name, for the names observations carry (a few dozen per family): every env step
+#: filters its observation, and the patterns cost more than the lookup.
+_ALLOWED_CACHE: dict[str, bool] = {}
+
+
 def visible(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The part of an observation a harness sees."""
-    return {k: v for k, v in obs.items() if allowed(k)}
+    cache = _ALLOWED_CACHE
+    out = {}
+    for k, v in obs.items():
+        ok = cache.get(k)
+        if ok is None:
+            ok = allowed(k)
+            if len(cache) < 4096:
+                cache[k] = ok
+        if ok:
+            out[k] = v
+    return out
 
 
 def denied_reads(names: Iterable[str]) -> list[str]:

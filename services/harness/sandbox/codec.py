@@ -1,0 +1,310 @@
+"""The sandbox channel's wire format: length-prefixed binary frames, arrays as raw bytes.
+
+Every message is ``u32 length | u8 kind | payload``. Numbers are packed with :mod:`struct`,
+strings as ``u32 length | UTF-8``, numpy arrays as ``dtype string | ndim | shape | raw bytes``.
+The parent never unpickles what a sandbox child sends (the child runs untrusted code): replies
+are decoded here, field by field, and anything malformed raises :class:`WireError`. The
+direction parent -> child carries only trusted data; its set-up messages (the package's files)
+are pickled, the per-step messages are not.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+# Parent -> child.
+INIT = 1        # pickled set-up: package files or sources, params, window size, whether to check
+START = 2       # pickled: instruction, milestone names (a new episode)
+STEP = 3        # a frame, then the indices of the critics to run (evaluate)
+PUSH = 4        # a frame only (restoring the window of a respawned child)
+REC_START = 5   # start a package recovery: its mode, "<stem>:<factory>" and pickled params
+REC_ACT = 6     # the active package recovery's next action
+PERCEPT = 7     # the answer to a perception query
+CHECK = 8       # pickled files: load and build a runtime inside the sandbox (publish-time probe)
+# Child -> parent.
+READY = 20      # isolation report after start-up
+LOADED = 21     # critic names and module-level callables, or an error
+RESULTS = 22    # one result per critic run
+PERCEIVE = 23   # a perception query: frame step, query
+REC_STARTED = 24
+REC_ACTION = 25
+CHECKED = 26    # problems found by CHECK
+ERROR = 27      # the request failed (text)
+
+MAX_MESSAGE = 64 << 20
+#: Most bytes a child's reply may take: larger is a protocol violation.
+MAX_REPLY = 1 << 20
+
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_HEAD = struct.Struct("<IB")
+_I64 = struct.Struct("<q")
+_F64 = struct.Struct("<d")
+
+
+class WireError(ValueError):
+    """A message that does not decode (a child that broke the protocol)."""
+
+
+def frame(kind: int, payload: bytes | bytearray | memoryview = b"") -> bytes:
+    """One message: length, kind, payload."""
+    return _HEAD.pack(len(payload) + 1, kind) + bytes(payload)
+
+
+class Writer:
+    """Builds a payload from parts."""
+
+    __slots__ = ("parts",)
+
+    def __init__(self) -> None:
+        self.parts: list[bytes | memoryview] = []
+
+    def u32(self, v: int) -> None:
+        self.parts.append(_U32.pack(v))
+
+    def i64(self, v: int) -> None:
+        self.parts.append(_I64.pack(v))
+
+    def f64(self, v: float) -> None:
+        self.parts.append(_F64.pack(v))
+
+    def text(self, s: str) -> None:
+        b = s.encode("utf-8", "replace")
+        self.parts.append(_U32.pack(len(b)))
+        self.parts.append(b)
+
+    def texts(self, items: Sequence[str]) -> None:
+        self.u32(len(items))
+        for s in items:
+            self.text(s)
+
+    def array(self, a: np.ndarray) -> None:
+        if not a.flags.c_contiguous:
+            a = np.ascontiguousarray(a).reshape(a.shape)  # (ascontiguousarray makes a 0-d array 1-d)
+        dt = a.dtype.str.encode()
+        self.parts.append(struct.pack(f"<B{len(dt)}sB{a.ndim}I", len(dt), dt, a.ndim, *a.shape))
+        self.parts.append(a.data.cast("B") if a.nbytes else b"")
+
+    def arrays(self, named: Mapping[str, np.ndarray]) -> None:
+        """Named arrays: per array a header (name, dtype, shape; cached, the same every step) and
+        the raw bytes."""
+        self.u32(len(named))
+        parts = self.parts
+        for k, v in named.items():
+            a = v if isinstance(v, np.ndarray) and v.flags.c_contiguous else _contiguous(np.asarray(v))
+            key = (k, a.dtype, a.shape)
+            head = _HEADERS.get(key)
+            if head is None:
+                head = _header(k, a)
+                if len(_HEADERS) < 4096:
+                    _HEADERS[key] = head
+            parts.append(head)
+            if a.nbytes:
+                parts.append(a.data.cast("B"))
+
+    def message(self, kind: int) -> bytes:
+        body = b"".join(self.parts)
+        return _HEAD.pack(len(body) + 1, kind) + body
+
+
+_HEADERS: dict[tuple[str, np.dtype[Any], tuple[int, ...]], bytes] = {}
+_PARSED: dict[bytes, tuple[str, np.dtype[Any], tuple[int, ...], int]] = {}
+
+
+def _contiguous(a: np.ndarray) -> np.ndarray:
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a).reshape(a.shape)
+
+
+def _header(name: str, a: np.ndarray) -> bytes:
+    """``u16 length | name | dtype | ndim | shape``, then the payload's byte count."""
+    n, dt = name.encode(), a.dtype.str.encode()
+    body = struct.pack(f"<H{len(n)}sB{len(dt)}sB{a.ndim}I", len(n), n, len(dt), dt, a.ndim, *a.shape)
+    return struct.pack("<H", len(body)) + body + _U32.pack(a.nbytes)
+
+
+def _parse_header(body: bytes) -> tuple[str, np.dtype[Any], tuple[int, ...], int]:
+    try:
+        (n,) = struct.unpack_from("<H", body, 0)
+        name = body[2 : 2 + n].decode()
+        pos = 2 + n
+        dl = body[pos]
+        dt = np.dtype(body[pos + 1 : pos + 1 + dl].decode("ascii"))
+        pos += 1 + dl
+        ndim = body[pos]
+        shape = struct.unpack_from(f"<{ndim}I", body, pos + 1)
+        if pos + 1 + 4 * ndim != len(body):
+            raise WireError("array header has trailing bytes")
+    except (struct.error, IndexError, UnicodeDecodeError, TypeError, ValueError) as exc:
+        raise WireError(f"bad array header: {exc}") from None
+    if dt.hasobject:
+        raise WireError("object arrays are not allowed")
+    count = 1
+    for d in shape:
+        count *= d
+    return name, dt, tuple(shape), count * dt.itemsize
+
+
+class Reader:
+    """Reads a payload back; every read is bounds-checked."""
+
+    __slots__ = ("buf", "pos", "end")
+
+    def __init__(self, buf: bytes | memoryview) -> None:
+        self.buf = memoryview(buf)
+        self.pos = 0
+        self.end = len(self.buf)
+
+    def _take(self, n: int) -> memoryview:
+        pos = self.pos
+        if n < 0 or pos + n > self.end:
+            raise WireError(f"message truncated at byte {pos} (wanted {n} more of {self.end})")
+        self.pos = pos + n
+        return self.buf[pos : pos + n]
+
+    def _at(self, size: int) -> int:
+        pos = self.pos
+        if pos + size > self.end:
+            raise WireError(f"message truncated at byte {pos} (wanted {size} more of {self.end})")
+        self.pos = pos + size
+        return pos
+
+    def u32(self) -> int:
+        return int(_U32.unpack_from(self.buf, self._at(4))[0])
+
+    def u32s(self, n: int) -> tuple[int, ...]:
+        """``n`` u32 values at once."""
+        if n < 0 or n > 1 << 20:
+            raise WireError(f"{n} values")
+        return struct.unpack_from(f"<{n}I", self.buf, self._at(4 * n))
+
+    def i64(self) -> int:
+        return int(_I64.unpack_from(self.buf, self._at(8))[0])
+
+    def f64(self) -> float:
+        return float(_F64.unpack_from(self.buf, self._at(8))[0])
+
+    def text(self, limit: int = 1 << 16) -> str:
+        n = self.u32()
+        if n > limit:
+            raise WireError(f"string of {n} bytes over the limit of {limit}")
+        return bytes(self._take(n)).decode("utf-8", "replace")
+
+    def texts(self, limit: int = 4096) -> list[str]:
+        n = self.u32()
+        if n > limit:
+            raise WireError(f"{n} strings over the limit of {limit}")
+        return [self.text() for _ in range(n)]
+
+    def array(self, copy: bool = False) -> np.ndarray:
+        (n,) = struct.unpack("<B", self._take(1))
+        dt = np.dtype(bytes(self._take(n)).decode("ascii"))
+        if dt.hasobject:
+            raise WireError("object arrays are not allowed")
+        (ndim,) = struct.unpack("<B", self._take(1))
+        shape = struct.unpack(f"<{ndim}I", self._take(4 * ndim))
+        count = 1
+        for s in shape:
+            count *= s
+        data = self._take(count * dt.itemsize)
+        a = np.frombuffer(data, dtype=dt).reshape(shape)
+        return a.copy() if copy else a
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = self.u32()
+        out = {}
+        for _ in range(n):
+            (hl,) = _U16.unpack_from(self.buf, self._at(2))
+            head = bytes(self._take(hl))
+            parsed = _PARSED.get(head)
+            if parsed is None:
+                parsed = _parse_header(head)
+                if len(_PARSED) < 4096:
+                    _PARSED[head] = parsed
+            name, dt, shape, nbytes = parsed
+            if self.u32() != nbytes:
+                raise WireError(f"array {name}: byte count does not match its shape")
+            out[name] = np.frombuffer(self._take(nbytes), dtype=dt).reshape(shape)
+        return out
+
+    def done(self) -> None:
+        if self.pos != len(self.buf):
+            raise WireError(f"{len(self.buf) - self.pos} bytes left over")
+
+
+def encode_frame(w: Writer, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
+                 milestones: Iterable[str]) -> None:
+    """A trajectory frame (what critics read): step, observation, action, milestones."""
+    w.i64(step)
+    w.arrays(obs)
+    if action is None:
+        w.u32(0)
+    else:
+        w.u32(1)
+        w.array(np.asarray(action))
+    w.texts(sorted(milestones))
+
+
+def decode_frame(r: Reader) -> tuple[int, dict[str, np.ndarray], np.ndarray | None, frozenset[str]]:
+    step = r.i64()
+    obs = r.arrays()
+    action = r.array() if r.u32() else None
+    return step, obs, action, frozenset(r.texts())
+
+
+# Per-critic result kinds in RESULTS.
+R_NONE, R_PROPOSAL, R_ERROR = 0, 1, 2
+
+
+def encode_proposal(w: Writer, evidence: str, mode: str, details: Mapping[str, Any]) -> None:
+    w.text(evidence)
+    w.text(mode)
+    w.u32(len(details))
+    for k, v in details.items():
+        w.text(str(k))
+        w.f64(float(v))
+
+
+def decode_proposal(r: Reader) -> tuple[str, str, dict[str, float]]:
+    evidence, mode = r.text(), r.text()
+    n = r.u32()
+    if n > 1024:
+        raise WireError(f"{n} details over the limit of 1024")
+    return evidence, mode, {r.text(): r.f64() for _ in range(n)}
+
+
+def pack_detections(found: Any) -> bytes:
+    """A perception answer as a message of its own."""
+    w = Writer()
+    encode_detections(w, found)
+    return w.message(PERCEPT)
+
+
+def encode_detections(w: Writer, found: Any) -> None:
+    """A perception answer: -1 for None, -2 then one box for a single Detection, else a list."""
+    if found is None:
+        w.i64(-1)
+    elif isinstance(found, list):
+        w.i64(len(found))
+        for d in found:
+            w.array(np.asarray(d.pos, dtype=np.float64))
+            w.array(np.asarray(d.box, dtype=np.float64))
+    else:
+        w.i64(-2)
+        w.array(np.asarray(found.pos, dtype=np.float64))
+        w.array(np.asarray(found.box, dtype=np.float64))
+
+
+def decode_detections(r: Reader, detection: Any) -> Any:
+    """The inverse of :func:`encode_detections`; ``detection`` builds one (api.Detection)."""
+    n = r.i64()
+    if n == -1:
+        return None
+    if n == -2:
+        return detection(r.array(copy=True), r.array(copy=True))
+    if n < 0 or n > 4096:
+        raise WireError(f"{n} detections")
+    return [detection(r.array(copy=True), r.array(copy=True)) for _ in range(n)]

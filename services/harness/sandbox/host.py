@@ -1,0 +1,175 @@
+"""A harness runtime's package code behind the sandbox: critics and recoveries by proxy.
+
+:class:`SandboxedCode` owns one sandbox child (services/harness/sandbox/client.py) for one
+runtime. It loads the package's tools there, feeds it every frame, runs the enabled code critics
+and package recoveries there, and when the child was killed (a call over its hard limit, a crash)
+starts a fresh one on the next call and restores the window, so that the episode goes on with the
+critic that overran switched off.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from services.harness.runtime.api import Frame, Proposal, Window
+from services.harness.runtime.perception import QUERIES
+from services.harness.runtime.library.recoveries import FAILED, RUNNING, EpisodeMemory, PolicyUnder
+from services.harness.sandbox import codec
+from services.harness.sandbox.client import CallFailed, CriticResult, Loaded, SandboxClient, SandboxError, SandboxLimits
+
+log = logging.getLogger("zetta.harness.sandbox")
+
+
+class SandboxedCode:
+    """The package code of one runtime, in its own sandbox child."""
+
+    def __init__(self, sources: Mapping[str, str], params: Mapping[str, Mapping[str, Any]], window: int,
+                 limits: SandboxLimits | None = None, checked: bool = True) -> None:
+        self._sources = dict(sources)
+        self._params = {k: dict(v) for k, v in params.items()}
+        self._window = window
+        self._checked = checked
+        self.limits = limits or SandboxLimits.from_env()
+        self._client: SandboxClient | None = None
+        self._episode: tuple[str, tuple[str, ...]] = ("", ())
+        self.respawns = 0
+        #: Perception queries the package's critics asked, answered with every frame from then on.
+        self._queries: list[str] = []
+        loaded = self._spawn()
+        self.critics = loaded.critics
+        self.callables = loaded.callables
+
+    @property
+    def isolation(self) -> Mapping[str, Any]:
+        return self._client.isolation if self._client is not None else {}
+
+    @property
+    def pid(self) -> int:
+        return self._client.pid if self._client is not None else -1
+
+    def _spawn(self) -> Loaded:
+        client = SandboxClient(self.limits)
+        try:
+            loaded = client.load(self._window, self._sources, self._params, self._checked)
+        except BaseException:
+            client.close()
+            raise
+        self._client = client
+        return loaded
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
+        self._episode = (instruction, tuple(milestone_names))
+        if self._client is None or self._client.dead:
+            return  # respawned (and started) at the next step
+        try:
+            self._client.start(*self._episode)
+        except SandboxError:
+            self.close()
+
+    def _live(self, frames: Sequence[Frame]) -> SandboxClient:
+        """The child, respawned with the window's earlier frames when the last one was killed."""
+        if self._client is not None and not self._client.dead:
+            return self._client
+        self.close()
+        loaded = self._spawn()
+        if loaded.critics != self.critics:
+            self.close()
+            raise SandboxError(-1, "the package's critics changed on respawn")
+        self.respawns += 1
+        client = self._client
+        assert client is not None
+        client.start(*self._episode)
+        for f in frames[:-1]:
+            client.push(f.step, f.obs, f.action, f.milestones)
+        return client
+
+    def step(self, frames: Sequence[Frame], runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float]
+             ) -> list[CriticResult]:
+        """Send the newest frame of ``frames`` and run the critics ``runs`` ((index, timed in CPU))."""
+        client = self._live(frames)
+        f = frames[-1]
+        # The queries the critics asked before are answered along with the frame (one round trip
+        # per step, not one per query); a new query costs one round trip and is learned.
+        prefetched = [(q, f.perceive(q)) for q in self._queries]
+        served = _perceiver(frames)
+        learned = self._queries
+
+        def perceive(step: int, query: str) -> Any:
+            found = served(step, query)
+            if step == f.step and query in QUERIES and query not in learned:
+                learned.append(query)
+            return found
+
+        return client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, perceive, prefetched)
+
+    def recovery(self, ref: str, params: Mapping[str, Any], hard_limit_s: float,
+                 frames: Callable[[], Sequence[Frame]]) -> "RemoteRecovery":
+        return RemoteRecovery(self, ref, params, hard_limit_s, frames)
+
+    def client(self) -> SandboxClient | None:
+        return self._client
+
+
+def _perceiver(frames: Sequence[Frame]) -> Callable[[int, str], Any]:
+    def perceive(step: int, query: str) -> Any:
+        for f in reversed(frames):
+            if f.step == step:
+                return f.perceive(query)
+        return None
+
+    return perceive
+
+
+def to_proposal(name: str, result: CriticResult) -> Proposal:
+    assert result.proposal is not None
+    evidence, mode, details = result.proposal
+    return Proposal(name, evidence, mode, details)
+
+
+class RemoteRecovery:
+    """A package recovery (``"<stem>:<factory>"`` in a playbook) run in the sandbox child."""
+
+    name = "package"
+
+    def __init__(self, code: SandboxedCode, ref: str, params: Mapping[str, Any], hard_limit_s: float,
+                 frames: Callable[[], Sequence[Frame]]) -> None:
+        self.code = code
+        self.ref = ref
+        self.params = dict(params)
+        self.hard_limit_s = hard_limit_s
+        self.frames = frames
+        self.status = RUNNING
+        self.reason = ""
+        self.memory = EpisodeMemory()
+
+    def _client(self) -> SandboxClient:
+        client = self.code.client()
+        if client is None or client.dead:
+            raise SandboxError(-1, "the sandbox was restarted; the package recovery's state is gone")
+        return client
+
+    def start(self, w: Window, memory: EpisodeMemory) -> None:
+        self._client().recovery_start(self.ref, self.params, self.hard_limit_s, _perceiver(self.frames()))
+
+    def act(self, w: Window) -> np.ndarray | PolicyUnder | None:
+        try:
+            action, status, reason = self._client().recovery_act(self.hard_limit_s, _perceiver(self.frames()))
+        except CallFailed as exc:
+            self.status, self.reason = FAILED, f"raised in the sandbox: {exc}"
+            return None
+        self.status, self.reason = status or RUNNING, reason
+        if isinstance(action, str):
+            return PolicyUnder(action)
+        return action
+
+
+__all__ = ["CallFailed", "RemoteRecovery", "SandboxError", "SandboxedCode", "codec", "to_proposal"]

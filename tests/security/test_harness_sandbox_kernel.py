@@ -1,0 +1,228 @@
+"""The kernel layer of the harness sandbox on its own: package code that never went through the
+static checks (loaded unchecked, straight into the sandbox runner) tries to write files, start
+processes, open sockets, signal the host and take the machine's memory. Every attempt fails inside
+the child, and the test checks from outside that nothing happened: no marker file, no connection
+on a listener it opened, the host process alive. Needs root (to drop to uid 65534 and chroot);
+without it the child runs degraded and these tests are skipped with the reason."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.harness.sandbox.client import SandboxClient, SandboxError
+
+pytestmark = [
+    pytest.mark.timeout(120),
+    pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox drops to uid 65534 and chroots only when started as root"),
+]
+
+ATTEMPTS = r'''
+import os
+import signal
+import socket
+import subprocess
+import threading
+
+from services.harness.runtime.api import Proposal
+
+
+def _try(name, fn):
+    try:
+        out = fn()
+    except BaseException as exc:
+        return Proposal(name, f"{type(exc).__name__}: {exc}", "", {"blocked": 1.0})
+    return Proposal(name, f"succeeded: {out!r}", "", {"blocked": 0.0})
+
+
+def critic_whoami(window, params):
+    return Proposal("whoami", os.getcwd(), "", {"uid": os.getuid(), "gid": os.getgid(), "euid": os.geteuid(),
+                                               "groups": len(os.getgroups())})
+
+
+def critic_system(window, params):
+    status = os.system(f"touch {params['marker']}.system")
+    return Proposal("system", f"exit status {status}", "", {"blocked": float(status != 0)})
+
+
+def critic_write_marker(window, params):
+    def write():
+        with open(params["marker"] + ".open", "w") as f:
+            f.write("x")
+    return _try("write_marker", write)
+
+
+def critic_write_tmp(window, params):
+    def write():
+        with open("/tmp/zetta-sandbox-escape", "w") as f:
+            f.write("x")
+    return _try("write_tmp", write)
+
+
+def critic_read_passwd(window, params):
+    return _try("read_passwd", lambda: open("/etc/passwd").read())
+
+
+def critic_connect(window, params):
+    return _try("connect", lambda: socket.create_connection(("127.0.0.1", params["port"]), timeout=1.0))
+
+
+def critic_unix(window, params):
+    def connect():
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.connect(params["unix"])
+        return s
+    return _try("unix", connect)
+
+
+def critic_fork(window, params):
+    def fork():
+        pid = os.fork()
+        if pid == 0:
+            open(params["marker"] + ".fork", "w").close()
+            os._exit(0)
+        return pid
+    return _try("fork", fork)
+
+
+def critic_subprocess(window, params):
+    return _try("subprocess", lambda: subprocess.run(["/bin/sh", "-c", f"touch {params['marker']}.subprocess"]))
+
+
+def critic_thread(window, params):
+    def start():
+        t = threading.Thread(target=lambda: None)
+        t.start()
+        return t
+    return _try("thread", start)
+
+
+def critic_signal_host(window, params):
+    return _try("signal_host", lambda: os.kill(params["host_pid"], signal.SIGTERM))
+
+
+def critic_setuid_root(window, params):
+    return _try("setuid_root", lambda: os.setuid(0))
+
+
+def critic_big_file(window, params):
+    def write():
+        with open("big", "wb") as f:  # in the scratch dir, the one writable place: but limited
+            f.write(b"x" * (8 << 20))
+    return _try("big_file", write)
+
+
+def critic_memory_bomb(window, params):
+    return _try("memory_bomb", lambda: bytearray(4 << 30))
+
+
+def critic_scratch(window, params):
+    def write():
+        with open("note.txt", "w") as f:
+            f.write("allowed")
+        return open("note.txt").read()
+    return _try("scratch", write)
+'''
+
+
+@pytest.fixture
+def targets(tmp_path: Path):
+    """A world-writable directory (only the sandbox may stop a write there), a TCP listener and a
+    Unix socket listener on this host."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    tcp = socket.create_server(("127.0.0.1", 0))
+    tcp.settimeout(0.5)
+    unix_path = str(shared / "listener.sock")
+    unix = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    unix.bind(unix_path)
+    os.chmod(unix_path, 0o777)
+    unix.listen()
+    unix.settimeout(0.5)
+    yield {"marker": str(shared / "marker"), "port": tcp.getsockname()[1], "unix": unix_path,
+           "host_pid": os.getpid()}, shared, tcp, unix
+    tcp.close()
+    unix.close()
+
+
+def _run_all(params: dict) -> tuple[SandboxClient, dict]:
+    child = SandboxClient()
+    loaded = child.load(4, {"attempts": ATTEMPTS}, {"attempts": params}, checked=False)
+    child.start("", [])
+    results = child.step(0, {"robot0_eef_pos": np.zeros(3)}, None, frozenset(),
+                         [(i, False) for i in range(len(loaded.critics))], lambda i: 5.0)
+    out = {}
+    for name, res in zip(loaded.critics, results):
+        assert res.proposal is not None, (name, res.error)
+        evidence, _, details = res.proposal
+        out[name.removeprefix("attempts.")] = (evidence, details)
+    return child, out
+
+
+def test_unchecked_package_code_cannot_escape_the_sandbox(targets) -> None:
+    params, shared, tcp, unix = targets
+    child, out = _run_all(params)
+    for name, (evidence, details) in sorted(out.items()):
+        print(f"{name:>13}: {evidence}  {details}")  # shown with -s: what each attempt got
+    try:
+        evidence, ids = out["whoami"]
+        assert ids == {"uid": 65534.0, "gid": 65534.0, "euid": 65534.0, "groups": 0.0}
+        assert evidence == "/"  # its own scratch dir, as its root
+        assert child.isolation["uid"] == 65534 and child.isolation["chroot"] and child.isolation["network_isolated"]
+        assert child.isolation["degraded"] == []
+        for attempt in ("system", "write_marker", "write_tmp", "read_passwd", "connect", "unix", "fork",
+                        "subprocess", "thread", "signal_host", "setuid_root", "big_file", "memory_bomb"):
+            evidence, details = out[attempt]
+            assert details["blocked"] == 1.0, (attempt, evidence)
+        # the reasons are the kernel's, not a missing module or a Python-level guard
+        assert "Network is unreachable" in out["connect"][0]
+        assert "Resource temporarily unavailable" in out["fork"][0]
+        assert "Operation not permitted" in out["signal_host"][0] and "Operation not permitted" in out["setuid_root"][0]
+        assert "File too large" in out["big_file"][0]
+        assert "MemoryError" in out["memory_bomb"][0]
+        assert out["scratch"] == ("succeeded: 'allowed'", {"blocked": 0.0})  # its scratch space works
+    finally:
+        child.close()
+    # From outside: nothing happened.
+    assert sorted(p.name for p in shared.iterdir()) == ["listener.sock"]
+    assert not Path("/tmp/zetta-sandbox-escape").exists()
+    for listener in (tcp, unix):
+        with pytest.raises(socket.timeout):
+            listener.accept()
+
+
+def test_a_runaway_call_is_killed_at_its_hard_limit_and_the_child_is_gone() -> None:
+    spin = "def critic_spin(window, params):\n    sum(range(400_000_000))\n"
+    child = SandboxClient()
+    child.load(4, {"spin": spin}, checked=False)
+    child.start("", [])
+    pid = child.pid
+    t0 = time.perf_counter()
+    with pytest.raises(SandboxError) as err:
+        child.step(0, {}, None, frozenset(), [(0, False)], lambda i: 0.2)
+    took = time.perf_counter() - t0
+    assert err.value.index == 0 and "hard limit" in err.value.reason
+    assert took < 0.2 + 0.3, took
+    for _ in range(100):  # SIGKILL is asynchronous; the zygote reaps it
+        if not Path(f"/proc/{pid}").exists():
+            break
+        time.sleep(0.02)
+    assert not Path(f"/proc/{pid}").exists()
+
+
+def test_the_static_checks_still_apply_inside_the_sandbox() -> None:
+    """Checked loading (what the services do) refuses the same code before running it."""
+    from services.harness.sandbox.client import CallFailed
+
+    child = SandboxClient()
+    try:
+        with pytest.raises(CallFailed, match="not allowed|only allowed|may not import"):
+            child.load(4, {"attempts": ATTEMPTS}, {}, checked=True)
+    finally:
+        child.close()
