@@ -3,8 +3,11 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
+from services.common.policies import lerobot_cameras, policy_env_config
 from services.policy_worker.config import PolicyWorkerConfig
 from services.policy_worker.vla.adapter import _parse_pairs, make_lerobot_adapter
 from services.policy_worker.vla.lerobot_import import TorchvisionUnavailable, _refusing_module
@@ -34,3 +37,26 @@ def test_torchvision_stand_in_imports_but_refuses_every_use() -> None:
     with pytest.raises(TorchvisionUnavailable, match="resize"):
         tv.resize(None)
     assert not hasattr(tv, "__wrapped__")
+
+
+def test_lerobot_image_inputs_map_to_env_cameras(tmp_path, monkeypatch) -> None:
+    pi05 = [("observation.images.image", (3, 224, 224)), ("observation.images.wrist_image", (3, 224, 224))]
+    assert lerobot_cameras(pi05) == [("observation.images.image", "agentview_image", 224),
+                                     ("observation.images.wrist_image", "robot0_eye_in_hand_image", 224)]
+    aloha = [("observation.images.top", (3, 96, 96)), ("observation.images.front", (3, 96, 96))]
+    with pytest.raises(ValueError, match="two of them would read the agentview camera"):
+        lerobot_cameras(aloha)
+    assert [t for _, t, _ in lerobot_cameras(aloha, {"observation.images.front": "frontview"})] == [
+        "agentview_image", "frontview_image"]
+    with pytest.raises(ValueError, match="square"):
+        lerobot_cameras([("observation.image", (3, 96, 128))])
+    with pytest.raises(ValueError, match="does not read"):
+        lerobot_cameras(pi05, {"observation.images.side": "sideview"})
+    # The CLI's sessions render what the checkpoint's config.json declares.
+    (tmp_path / "config.json").write_text(json.dumps({"type": "pi05", "input_features": {
+        "observation.images.image": {"type": "VISUAL", "shape": [3, 224, 224]},
+        "observation.images.wrist_image": {"type": "VISUAL", "shape": [3, 224, 224]},
+        "observation.state": {"type": "STATE", "shape": [8]}}}))
+    monkeypatch.setenv("ZETTA_LEROBOT_CHECKPOINT", str(tmp_path))
+    assert policy_env_config("lerobot") == {"cameras": ["agentview", "robot0_eye_in_hand"], "camera_size": 224,
+                                            "reflections": False}

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common.policies import PROPRIO_INPUTS
+from services.common.policies import PROPRIO_INPUTS, lerobot_cameras
 from services.common.specs import TensorSpec
 
 ACTION_DIM = 7
@@ -161,9 +161,6 @@ class OpenPIAdapter(ExternalPolicyAdapter):
         return np.stack([np.asarray(o, np.float32)[: self.chunk_size, :ACTION_DIM] for o in outputs])
 
 
-#: Camera tensors of the env families are ``<camera>_image``; a LeRobot image key naming a wrist
-#: camera (``observation.images.wrist_image``) reads the eye-in-hand camera, the first other one agentview.
-_WRIST_HINTS = ("wrist", "hand")
 #: Proprioception Zetta can hand a LeRobot ``observation.state``, with widths. ``robot0_eef_axis_angle``
 #: is derived from ``robot0_eef_quat`` (robosuite's quat2axisangle, as LeRobot's and openpi's LIBERO code use).
 _STATE_PARTS: dict[str, int] = {**dict(PROPRIO_INPUTS), "robot0_eef_axis_angle": 3}
@@ -244,32 +241,14 @@ class LeRobotAdapter(ExternalPolicyAdapter):
                 cfg, pretrained_path=checkpoint_dir,
                 preprocessor_overrides={"device_processor": {"device": self.device}})
 
-        self.cameras: list[tuple[str, str, int]] = []  # (LeRobot key, Zetta tensor, side)
+        visual = [(k, tuple(f.shape)) for k, f in cfg.input_features.items() if f.type is FeatureType.VISUAL]
+        #: (LeRobot key, Zetta tensor, side)
+        self.cameras: list[tuple[str, str, int]] = lerobot_cameras(visual, cameras)
+        for key, _, side in self.cameras:
+            if image_size is not None and side != image_size:
+                raise ValueError(f"LeRobot input {key} is {side} px, image_size={image_size} was asked")
         self.state_key: str | None = None
         self.state_parts: tuple[str, ...] = ()
-        explicit = dict(cameras or {})
-        visual = [(k, f) for k, f in cfg.input_features.items() if f.type is FeatureType.VISUAL]
-        used: set[str] = set()
-        for key, feature in visual:
-            shape = tuple(feature.shape)
-            if len(shape) != 3 or shape[0] != 3 or shape[1] != shape[2]:
-                raise ValueError(f"LeRobot {cfg.type} input {key} has shape {list(shape)}; Zetta's env cameras "
-                                 "render square RGB frames ([3, S, S])")
-            if image_size is not None and shape[1] != image_size:
-                raise ValueError(f"LeRobot input {key} is {shape[1]} px, image_size={image_size} was asked")
-            camera = explicit.pop(key, None)
-            if camera is None:
-                wrist = any(h in key.rsplit(".", 1)[-1].lower() for h in _WRIST_HINTS)
-                camera = "robot0_eye_in_hand" if wrist else "agentview"
-            camera = camera.removesuffix("_image")
-            if camera in used:
-                raise ValueError(f"LeRobot inputs {[k for k, _ in visual]}: two of them would read the {camera} "
-                                 "camera; map them explicitly (ZETTA_LEROBOT_CAMERAS=key=camera,...)")
-            used.add(camera)
-            self.cameras.append((key, f"{camera}_image", int(shape[1])))
-        if explicit:
-            raise ValueError(f"ZETTA_LEROBOT_CAMERAS names {sorted(explicit)}, which the policy does not read "
-                             f"(its image inputs: {[k for k, _ in visual]})")
         for key, feature in cfg.input_features.items():
             if feature.type is FeatureType.ENV:
                 raise ValueError(f"LeRobot input {key} is the simulator's environment state: privileged, not served")
