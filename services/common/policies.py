@@ -57,9 +57,10 @@ _WRIST_HINTS = ("wrist", "hand")
 
 def lerobot_cameras(visual: list[tuple[str, tuple[int, ...]]], explicit: dict[str, str] | None = None
                     ) -> list[tuple[str, str, int]]:
-    """A LeRobot policy's VISUAL inputs ``(key, [3, S, S])`` -> ``(key, <camera>_image, S)``: a key
-    naming a wrist or hand camera reads ``robot0_eye_in_hand``, the first other one ``agentview``;
-    ``explicit`` maps keys to cameras (ZETTA_LEROBOT_CAMERAS). Raises ValueError naming the input."""
+    """A LeRobot policy's VISUAL inputs ``(key, [3, S, S])`` -> ``(key, image tensor, S)``: a key
+    naming a wrist or hand camera reads ``robot0_eye_in_hand`` (tensor ``eye_in_hand_image``), the
+    first other one ``agentview`` (``agentview_image``); ``explicit`` maps keys to env cameras
+    (ZETTA_LEROBOT_CAMERAS). Raises ValueError naming the input."""
     explicit = dict(explicit or {})
     out: list[tuple[str, str, int]] = []
     used: set[str] = set()
@@ -71,7 +72,7 @@ def lerobot_cameras(visual: list[tuple[str, tuple[int, ...]]], explicit: dict[st
         if camera is None:
             wrist = any(h in key.rsplit(".", 1)[-1].lower() for h in _WRIST_HINTS)
             camera = "robot0_eye_in_hand" if wrist else "agentview"
-        camera = camera.removesuffix("_image")
+        camera = camera.removesuffix("_image").removeprefix("robot0_")  # the tensor drops the robot prefix
         if camera in used:
             raise ValueError(f"LeRobot inputs {[k for k, _ in visual]}: two of them would read the {camera} camera; "
                              "map them explicitly (ZETTA_LEROBOT_CAMERAS=key=camera,...)")

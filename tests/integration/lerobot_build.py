@@ -4,7 +4,8 @@
 ``TDMPCPolicy``, built from its ``TDMPCConfig`` with random weights, small so it runs in
 milliseconds) reading one 64 x 64 camera and LIBERO's 8-wide ``observation.state``, writes it with
 ``save_pretrained`` and its pre/post-processor pipelines with action statistics (min ``LOW``, max
-``HIGH``), and prints one JSON line describing it. It also builds a camera-less TD-MPC whose
+``HIGH``), and prints one JSON line describing it (with the inputs ``LeRobotAdapter`` declares for
+it by default: its image reads ``agentview_image``). It also builds a camera-less TD-MPC whose
 ``observation.state`` has the 16 columns of Zetta's LeRobot export and serves one batch of it through
 ``LeRobotAdapter`` in this process (reported under ``state_only``). It runs in its own process so the
 test process never imports lerobot (and its torchvision stand-in). Exit code 3: lerobot is not
@@ -67,9 +68,13 @@ def _serve_state_only(out: str) -> dict[str, object]:
 
 
 def build(out: str) -> dict[str, object]:
+    from services.policy_worker.vla.adapter import make_lerobot_adapter
+
     policy = _save(out, {"observation.image": ("VISUAL", (3, IMAGE, IMAGE)), "observation.state": ("STATE", (8,))})
+    default_inputs = [s.name for s in make_lerobot_adapter({"ZETTA_LEROBOT_CHECKPOINT": out}).input_specs()]
     return {"type": policy.config.type, "class": f"{type(policy).__module__}.{type(policy).__name__}",
-            "parameters": sum(p.numel() for p in policy.parameters()), "state_only": _serve_state_only(out + "-state")}
+            "parameters": sum(p.numel() for p in policy.parameters()), "default_inputs": default_inputs,
+            "state_only": _serve_state_only(out + "-state")}
 
 
 def main() -> int:

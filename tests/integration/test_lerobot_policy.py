@@ -3,8 +3,8 @@
 The policy is LeRobot's own ``TDMPCPolicy`` (random weights, built offline from its config class
 and saved with ``save_pretrained`` by tests/integration/lerobot_build.py in a child process). A
 stack with a robosuite Lift env worker and a policy worker serving it as ``ZETTA_MODELS=lerobot``
-then answers: the worker declares the camera and proprioception the checkpoint's ``config.json``
-asks for, four sessions render that camera and step on the policy's action chunks through the
+then answers: the worker declares the camera (mapped to the wrist camera) and proprioception the
+checkpoint's ``config.json`` asks for, four sessions render that camera and step on the policy's action chunks through the
 gateway (the SDK's PolicyStep), and the worker forms batches of several sessions.
 """
 
@@ -36,6 +36,10 @@ from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 LOW = np.array(lerobot_build.LOW, np.float32)
 HIGH = np.array(lerobot_build.HIGH, np.float32)
 SESSIONS = 4
+#: The stack serves the policy on the wrist camera (by default its one image reads agentview, as the
+#: builder reports): the robot-prefixed camera goes through the input check, the sessions' render
+#: config and the env's rendering.
+WRIST = "observation.image=robot0_eye_in_hand"
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +67,7 @@ def _batch_sizes(url: str) -> tuple[float, float]:
 async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monkeypatch) -> None:
     ck, info = checkpoint
     assert info["class"] == "lerobot.policies.tdmpc.modeling_tdmpc.TDMPCPolicy", info
+    assert info["default_inputs"] == ["agentview_image", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]
     # A camera-less policy on the 16 columns of Zetta's LeRobot export, served by the adapter in the builder.
     assert info["state_only"] == {"inputs": ["robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos",
                                              "robot0_joint_pos"],
@@ -73,7 +78,8 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
     t0 = time.monotonic()
     stack = stack_factory(env_workers=1, slots=SESSIONS, families=("robosuite",), models=("lerobot",), critic=False,
                           heartbeat_timeout_ms=15000,
-                          extra_env={"ZETTA_LEROBOT_CHECKPOINT": str(ck), "ZETTA_INPUT_CHECK_FAMILY": "robosuite",
+                          extra_env={"ZETTA_LEROBOT_CHECKPOINT": str(ck), "ZETTA_LEROBOT_CAMERAS": WRIST,
+                                     "ZETTA_INPUT_CHECK_FAMILY": "robosuite",
                                      "ZETTA_EARLY_DISPATCH": "0", "ZETTA_MAX_QUEUE_DELAY_MS": "50"})
     worker = stack.services["policy-0"]
     print(f"stack up in {time.monotonic() - t0:.1f} s")
@@ -84,7 +90,7 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
         (model,) = stub.ListModels(policy_worker_pb2.ListModelsRequest()).models
         inputs = {s.name: tuple(s.shape) for s in model.inputs}
         assert model.name == "lerobot" and model.chunk_size == lerobot_build.CHUNK
-        assert inputs == {"agentview_image": (64, 64, 3), "robot0_eef_pos": (3,), "robot0_eef_quat": (4,),
+        assert inputs == {"eye_in_hand_image": (64, 64, 3), "robot0_eef_pos": (3,), "robot0_eef_quat": (4,),
                           "robot0_gripper_qpos": (2,)}, inputs
 
         # Direct Infer, from several clients at once: every chunk [5, 7], finite, unnormalized into
@@ -100,7 +106,7 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
 
         def ask(i: int) -> None:
             for _ in range(3):
-                obs = {"agentview_image": rng.integers(0, 255, (64, 64, 3), dtype=np.uint8),
+                obs = {"eye_in_hand_image": rng.integers(0, 255, (64, 64, 3), dtype=np.uint8),
                        "robot0_eef_pos": rng.normal(size=3).astype(np.float32),
                        "robot0_eef_quat": np.array([0, 0, 0, 1], np.float32),
                        "robot0_gripper_qpos": np.array([0.02, -0.02], np.float32)}
@@ -123,8 +129,9 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
 
     # Through the gateway: sessions render the camera the policy declares and step on its chunks.
     cameras = render_config([TensorSpec(n, "uint8", shape) for n, shape in inputs.items() if n.endswith("_image")])
-    assert cameras == {"cameras": ["agentview"], "camera_size": 64, "reflections": False}
+    assert cameras == {"cameras": ["robot0_eye_in_hand"], "camera_size": 64, "reflections": False}
     monkeypatch.setenv("ZETTA_LEROBOT_CHECKPOINT", str(ck))
+    monkeypatch.setenv("ZETTA_LEROBOT_CAMERAS", WRIST)
     assert policy_env_config("lerobot") == cameras  # what the CLI commands create sessions with
     async with Gateway(stack.gateway_address) as gw:
         t0 = time.monotonic()
@@ -137,7 +144,7 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
             for r in results:
                 assert r.episode_step == 5 * step and r.executed_actions.shape == (5, 7)
                 assert np.isfinite(r.executed_actions).all()
-                assert r.observation["agentview_image"].shape == (64, 64, 3)
+                assert r.observation["eye_in_hand_image"].shape == (64, 64, 3)
         after = _batch_sizes(worker.metrics_url)
         print(f"4 Lift sessions created, reset and stepped 3 chunks in {time.monotonic() - t0:.1f} s")
         await group.close()

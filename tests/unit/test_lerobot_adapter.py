@@ -8,6 +8,8 @@ import json
 import pytest
 
 from services.common.policies import lerobot_cameras, policy_env_config
+from services.common.specs import TensorSpec, render_config
+from services.env_worker.families.schema import camera_obs_name
 from services.policy_worker.config import PolicyWorkerConfig
 from services.policy_worker.vla.adapter import _parse_pairs, make_lerobot_adapter
 from services.policy_worker.vla.lerobot_import import TorchvisionUnavailable, _refusing_module
@@ -42,7 +44,7 @@ def test_torchvision_stand_in_imports_but_refuses_every_use() -> None:
 def test_lerobot_image_inputs_map_to_env_cameras(tmp_path, monkeypatch) -> None:
     pi05 = [("observation.images.image", (3, 224, 224)), ("observation.images.wrist_image", (3, 224, 224))]
     assert lerobot_cameras(pi05) == [("observation.images.image", "agentview_image", 224),
-                                     ("observation.images.wrist_image", "robot0_eye_in_hand_image", 224)]
+                                     ("observation.images.wrist_image", "eye_in_hand_image", 224)]
     aloha = [("observation.images.top", (3, 96, 96)), ("observation.images.front", (3, 96, 96))]
     with pytest.raises(ValueError, match="two of them would read the agentview camera"):
         lerobot_cameras(aloha)
@@ -60,3 +62,10 @@ def test_lerobot_image_inputs_map_to_env_cameras(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("ZETTA_LEROBOT_CHECKPOINT", str(tmp_path))
     assert policy_env_config("lerobot") == {"cameras": ["agentview", "robot0_eye_in_hand"], "camera_size": 224,
                                             "reflections": False}
+
+
+def test_render_config_names_robot_cameras_as_the_env_does() -> None:
+    """A wrist-camera input (``eye_in_hand_image``: the tensor drops ``robot0_``) renders ``robot0_eye_in_hand``."""
+    specs = [TensorSpec("agentview_image", "uint8", (64, 64, 3)), TensorSpec("eye_in_hand_image", "uint8", (64, 64, 3))]
+    assert render_config(specs)["cameras"] == ["agentview", "robot0_eye_in_hand"]
+    assert camera_obs_name(render_config(specs)["cameras"][1]) == "eye_in_hand_image"

@@ -141,7 +141,7 @@ class OpenPIAdapter(ExternalPolicyAdapter):
         s = self.image_size
         return [
             TensorSpec("agentview_image", "uint8", (s, s, 3)),
-            TensorSpec("robot0_eye_in_hand_image", "uint8", (s, s, 3)),
+            TensorSpec("eye_in_hand_image", "uint8", (s, s, 3)),
             TensorSpec("robot0_eef_pos", "float32", (3,)),
             TensorSpec("robot0_eef_quat", "float32", (4,)),
             TensorSpec("robot0_gripper_qpos", "float32", (2,)),
@@ -151,7 +151,7 @@ class OpenPIAdapter(ExternalPolicyAdapter):
         state = np.concatenate([batch["robot0_eef_pos"], _quat_xyzw_to_axis_angle(batch["robot0_eef_quat"]),
                                 batch["robot0_gripper_qpos"]], axis=1)
         return [{"observation/image": batch["agentview_image"][i], "observation/wrist_image":
-                 batch["robot0_eye_in_hand_image"][i], "observation/state": state[i], "prompt": instructions[i]}
+                 batch["eye_in_hand_image"][i], "observation/state": state[i], "prompt": instructions[i]}
                 for i in range(len(instructions))]
 
     def forward(self, inputs):
@@ -195,8 +195,8 @@ class LeRobotAdapter(ExternalPolicyAdapter):
 
     * each VISUAL feature ``[3, S, S]`` -> a camera ``<camera>_image`` uint8 ``[S, S, 3]`` (row 0 at
       the top, as the env renders it), passed as float in [0, 1]; a key naming a wrist or hand camera
-      reads ``robot0_eye_in_hand``, the first other one ``agentview``; ``cameras`` maps keys explicitly
-      (``{"observation.images.top": "agentview"}``);
+      reads ``robot0_eye_in_hand`` (``eye_in_hand_image``), the first other one ``agentview``;
+      ``cameras`` maps keys explicitly (``{"observation.images.top": "agentview"}``);
     * ``observation.state`` -> proprioception concatenated in a known layout: 8 wide is LIBERO's
       (eef position, eef axis-angle, gripper qpos), 16 wide the columns of Zetta's LeRobot export; else
       ``state`` lists the parts (names of ``_STATE_PARTS``);
