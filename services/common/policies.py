@@ -49,9 +49,62 @@ def checkpoint_dir(model: str) -> Path | None:
     return None
 
 
+#: The served model answering from a LeRobot checkpoint directory (policy_worker/vla/adapter.py).
+LEROBOT_POLICY = "lerobot"
+#: A LeRobot image key whose last part holds one of these reads the eye-in-hand camera.
+_WRIST_HINTS = ("wrist", "hand")
+
+
+def lerobot_cameras(visual: list[tuple[str, tuple[int, ...]]], explicit: dict[str, str] | None = None
+                    ) -> list[tuple[str, str, int]]:
+    """A LeRobot policy's VISUAL inputs ``(key, [3, S, S])`` -> ``(key, image tensor, S)``: a key
+    naming a wrist or hand camera reads ``robot0_eye_in_hand`` (tensor ``eye_in_hand_image``), the
+    first other one ``agentview`` (``agentview_image``); ``explicit`` maps keys to env cameras
+    (ZETTA_LEROBOT_CAMERAS). Raises ValueError naming the input."""
+    explicit = dict(explicit or {})
+    out: list[tuple[str, str, int]] = []
+    used: set[str] = set()
+    for key, shape in visual:
+        if len(shape) != 3 or shape[0] != 3 or shape[1] != shape[2]:
+            raise ValueError(f"LeRobot input {key} has shape {list(shape)}; Zetta's env cameras render square "
+                             "RGB frames ([3, S, S])")
+        camera = explicit.pop(key, None)
+        if camera is None:
+            wrist = any(h in key.rsplit(".", 1)[-1].lower() for h in _WRIST_HINTS)
+            camera = "robot0_eye_in_hand" if wrist else "agentview"
+        camera = camera.removesuffix("_image").removeprefix("robot0_")  # the tensor drops the robot prefix
+        if camera in used:
+            raise ValueError(f"LeRobot inputs {[k for k, _ in visual]}: two of them would read the {camera} camera; "
+                             "map them explicitly (ZETTA_LEROBOT_CAMERAS=key=camera,...)")
+        used.add(camera)
+        out.append((key, f"{camera}_image", int(shape[1])))
+    if explicit:
+        raise ValueError(f"ZETTA_LEROBOT_CAMERAS names {sorted(explicit)}, which the policy does not read "
+                         f"(its image inputs: {[k for k, _ in visual]})")
+    return out
+
+
+def _lerobot_env_config() -> dict[str, Any]:
+    """Cameras of the LeRobot checkpoint ZETTA_LEROBOT_CHECKPOINT names, from its config.json."""
+    ck = os.environ.get("ZETTA_LEROBOT_CHECKPOINT", "").strip()
+    if not ck:
+        return {}
+    doc = json.loads((Path(ck) / "config.json").read_text())
+    visual = [(k, tuple(f["shape"])) for k, f in doc.get("input_features", {}).items() if f.get("type") == "VISUAL"]
+    explicit = {}
+    for item in (t.strip() for t in os.environ.get("ZETTA_LEROBOT_CAMERAS", "").split(",") if t.strip()):
+        key, _, camera = item.partition("=")
+        explicit[key.strip()] = camera.strip()
+    cams = lerobot_cameras(visual, explicit)
+    return render_config([TensorSpec(tensor, "uint8", (side, side, 3)) for _, tensor, side in cams])
+
+
 def policy_env_config(model: str) -> dict[str, Any]:
     """Env-config keys a model's sessions need (its cameras and their size, reflections off), {} for
-    a model that reads no image. Read from the checkpoint's config.json: no model is loaded."""
+    a model that reads no image. Read from the checkpoint's config.json: no model is loaded (for
+    ``lerobot``, the directory ZETTA_LEROBOT_CHECKPOINT names, when set)."""
+    if model == LEROBOT_POLICY:
+        return _lerobot_env_config()
     if model != DEFAULT_POLICY:
         return {}
     doc = json.loads((default_checkpoint() / "config.json").read_text())

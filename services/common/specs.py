@@ -63,6 +63,18 @@ class TensorSpec:
         return np.zeros([d if d >= 0 else 1 for d in self.shape], dtype=self.dtype)
 
 
+#: Cameras whose image tensor drops the robot prefix (``robot0_eye_in_hand`` -> ``eye_in_hand_image``,
+#: services/env_worker/families/schema.py camera_obs_name): render_config names them with it again.
+ROBOT_CAMERAS = ("eye_in_hand", "robotview", "agentview_left", "agentview_right", "agentview_center")
+
+
+def camera_of_image(name: str) -> str:
+    """The env's camera name of an image tensor: ``agentview_image`` -> ``agentview``,
+    ``eye_in_hand_image`` -> ``robot0_eye_in_hand``."""
+    camera = name.removesuffix("_image")
+    return f"robot0_{camera}" if camera in ROBOT_CAMERAS else camera
+
+
 def render_config(specs: list[TensorSpec]) -> dict[str, Any]:
     """The env-config keys that make a slot render exactly the camera images these input specs
     declare (``<camera>_image``, uint8 [S, S, 3]) with reflections off, or {} for a policy that
@@ -70,5 +82,5 @@ def render_config(specs: list[TensorSpec]) -> dict[str, Any]:
     cameras = [s for s in specs if s.name.endswith("_image")]
     if not cameras:
         return {}
-    return {"cameras": [s.name.removesuffix("_image") for s in cameras], "camera_size": int(cameras[0].shape[0]),
+    return {"cameras": [camera_of_image(s.name) for s in cameras], "camera_size": int(cameras[0].shape[0]),
             "reflections": False}

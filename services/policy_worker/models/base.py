@@ -79,6 +79,12 @@ def _openpi() -> PolicyModel:
     return make_openpi_pool()
 
 
+def _lerobot() -> PolicyModel:
+    from services.policy_worker.vla.adapter import make_lerobot_adapter
+
+    return make_lerobot_adapter()
+
+
 FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "scripted-pick-place": _scripted,
     # The same, weakened: it closes its gripper 4 cm above the grasp point (a known failure a bounded
@@ -94,6 +100,9 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
     "privileged-state-baseline": _privileged_state_baseline,
     # Forwards to running openpi policy servers (services/policy_worker/openpi; ZETTA_OPENPI_*).
     "openpi": _openpi,
+    # A LeRobot policy (any type: tdmpc, pi05, ...) from a local checkpoint directory
+    # (services/policy_worker/vla/adapter.py LeRobotAdapter; ZETTA_LEROBOT_*).
+    "lerobot": _lerobot,
 }
 
 
