@@ -19,6 +19,15 @@ PY="${1:-.venv}/bin/python"
 "$PY" -m pip install -q --no-deps "lerobot==0.4.4" "draccus==0.10.0" "mergedeep==1.3.4" "pyyaml-include==1.4.1" \
   "toml==0.10.2" "typing-inspect==0.9.0" "einops==0.8.1" "accelerate==1.16.0" "psutil==7.2.2" "imageio==2.37.0" \
   "diffusers==0.35.2" "pyserial==3.5"
+# draccus's wheel ships its own test suite as a top-level package named `tests`, which would shadow
+# this project's tests/ (every `from tests.conftest import ...` fails): remove exactly those files.
+"$PY" - <<'PY'
+import importlib.metadata as md, pathlib, shutil
+dist = md.distribution("draccus")
+roots = {pathlib.Path(str(f)).parts[0] for f in dist.files or [] if str(f).startswith("tests/")}
+for root in roots:
+    shutil.rmtree(dist.locate_file(root), ignore_errors=True)
+PY
 if ! ldconfig -p | grep -q libavcodec && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
   apt-get update -qq && apt-get install -y -qq --no-install-recommends libavcodec59 libavformat59 libavutil57 \
     libswscale6 libswresample4 libavdevice59 libavfilter8 || echo "FFmpeg libraries not installed: LeRobot video tests skip"

@@ -5,7 +5,7 @@ openpi's LIBERO client (examples/libero/main.py) sends ``observation/image`` and
 ``observation/state`` (8 floats: eef position 3, eef rotation as an axis-angle 3, gripper qpos 2)
 and ``prompt``; the server answers ``{"actions": [chunk, 7]}``. Zetta's canonical names
 (services/policy_worker/vla/features.py) carry the same signals: ``agentview_image``,
-``robot0_eye_in_hand_image``, ``robot0_eef_pos``, ``robot0_eef_quat`` (x, y, z, w),
+``eye_in_hand_image``, ``robot0_eef_pos``, ``robot0_eef_quat`` (x, y, z, w),
 ``robot0_gripper_qpos``. A key that already has a canonical name passes through unchanged, so a
 client can send what openpi's LIBERO format lacks (``robot0_joint_pos``, for one).
 """
@@ -24,7 +24,7 @@ WRIST_IMAGE = "observation/wrist_image"
 STATE = "observation/state"
 PROMPT = "prompt"
 #: openpi image key -> Zetta camera tensor.
-IMAGES = {IMAGE: "agentview_image", WRIST_IMAGE: "robot0_eye_in_hand_image"}
+IMAGES = {IMAGE: "agentview_image", WRIST_IMAGE: "eye_in_hand_image"}
 
 
 def quat_to_axis_angle(quat: np.ndarray) -> np.ndarray:

@@ -138,7 +138,7 @@ class OpenPIPool:
         size = self.config.image_size
         specs = [TensorSpec("agentview_image", "uint8", (size, size, 3))]
         if self.config.wrist_image:
-            specs.append(TensorSpec("robot0_eye_in_hand_image", "uint8", (size, size, 3)))
+            specs.append(TensorSpec("eye_in_hand_image", "uint8", (size, size, 3)))
         specs += [TensorSpec(n, "float32", (w,)) for n, w in PROPRIO_INPUTS if n != "robot0_joint_pos"]
         return specs
 
