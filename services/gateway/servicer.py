@@ -183,7 +183,10 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         if request.lease_seconds < 0 or request.lease_seconds > self.cfg.max_lease_seconds:
             raise ge.invalid(f"lease_seconds must be between 0 and {self.cfg.max_lease_seconds}, got {request.lease_seconds}")
         lease_ms = (request.lease_seconds or self.cfg.default_lease_seconds) * 1000
-        config = json_format.MessageToDict(request.env_config)
+        try:
+            config = json_format.MessageToDict(request.env_config)
+        except (ValueError, json_format.Error) as exc:  # NaN and infinities have no JSON form
+            raise ge.invalid(f"env_config cannot be read: {exc}; numbers must be finite") from None
         try:
             allocated = await self.registry.allocate(family, request.count, lease_ms, config,
                                                      hold_ms=self.cfg.create_timeout_ms, owner=CALLER.get().name)
