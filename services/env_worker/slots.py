@@ -21,7 +21,7 @@ import numpy as np
 from services.common import grpc_errors as ge
 from services.common.specs import TensorSpec
 from services.env_worker import metrics
-from services.env_worker.families import ConfigError, EnvFamily, UnknownFamilyError, canonical_config_key, get_family
+from services.env_worker.families import ConfigError, EnvFamily, EpisodeError, UnknownFamilyError, canonical_config_key, get_family
 
 T = TypeVar("T")
 
@@ -115,6 +115,9 @@ class BoundSlot:
         except asyncio.CancelledError:
             abandoned.set()
             raise
+        except EpisodeError as exc:  # the env has no episode the slot's record did not know of
+            self.episode = None
+            raise ge.failed_precondition(f"session {self.session_id}: {exc}", [self.session_id]) from None
         finally:
             self.activity.leave()
 
