@@ -179,3 +179,28 @@ async def test_step_concurrency_bounds_the_slots_working_at_once() -> None:
         unbounded.shutdown()
     finally:
         table.shutdown()
+
+
+async def test_a_bad_item_fails_only_its_own_session(policy_worker) -> None:
+    """Items of one loop turn travel together, but one that cannot succeed (a model the policy
+    worker does not serve, a wrong observation) fails alone: the policy worker fails a call whole,
+    and it used to fail every session coalesced with the bad one (found by bench/bench_fuzz.py:
+    a fuzzer's unknown model reached a good session as NOT_FOUND)."""
+    from services.common.grpc_errors import ServiceError
+
+    address, batches = policy_worker
+    bad_obs = {**OBS, "robot0_eef_pos": np.zeros(5, np.float32)}
+    async with _busy_worker(address, InferHold(max_ms=5000, min_busy=2), busy=3) as (client, activity):
+        tasks = [asyncio.ensure_future(client.infer(token, model, obs, "put it in", 5000)) for token, model, obs in (
+            ("good-0", MODEL, OBS), ("unknown-model", "no-such-model", OBS), ("good-1", MODEL, OBS),
+            ("bad-observation", MODEL, bad_obs))]
+        await asyncio.sleep(0.1)
+        assert not any(t.done() for t in tasks), "held together while the slots are busy"
+        activity.leave()
+        activity.leave()  # they leave in one turn
+        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 5)
+    assert [r.token for r in results if not isinstance(r, BaseException)] == ["good-0", "good-1"]
+    unknown, bad = results[1], results[3]
+    assert isinstance(unknown, ServiceError) and unknown.code == grpc.StatusCode.NOT_FOUND
+    assert "no-such-model" in unknown.message
+    assert isinstance(bad, ServiceError) and bad.code == grpc.StatusCode.INVALID_ARGUMENT
