@@ -23,7 +23,7 @@ from services.common.grpc_errors import ServiceError, timed_unary
 from services.common.metrics import HOP_LATENCY
 from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
-from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
+from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec, check_reset_spec
 from services.gateway.auth import CALLER, Authenticator
 from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
@@ -161,6 +161,8 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         return out
 
     def _specs_for(self, n: int, specs: Sequence[types_pb2.ResetSpec], what: str) -> list[types_pb2.ResetSpec]:
+        for i, spec in enumerate(specs):
+            check_reset_spec(spec, f"{what}[{i}]")
         if len(specs) == 1:
             return [specs[0]] * n
         if len(specs) != n:
@@ -444,6 +446,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 op = req.WhichOneof("op")
                 try:
                     if op == "reset":
+                        check_reset_spec(req.reset, "reset")
                         res = await stub.ResetSlots(
                             env_worker_pb2.ResetSlotsRequest(session_ids=[sid], specs=[req.reset]),
                             timeout=self._timeout(self.cfg.reset_timeout_ms),
