@@ -5,6 +5,9 @@
   zetta up                     start the same stack and keep it up until Ctrl-C
   zetta demo --gateway ADDR    run the demo against a stack that is already up
   zetta workers|sessions --gateway ADDR
+                               (demo, workers, sessions and harness take --token-file, --tls-ca,
+                               --tls-cert, --tls-key, or ZETTA_TOKEN, ZETTA_TLS_CA, ZETTA_TLS_CERT,
+                               ZETTA_TLS_KEY, for a stack with auth or TLS on: docs/security.md)
   zetta train [--variant state|image] [--data DEMOS.npz ...]
                                oracle demos (clean + DART) on LIBERO-Goal, train the Zetta VLA, DAgger
   zetta eval-policy [--model zetta-vla-image] [--suites ...] [--seeds N]
@@ -31,7 +34,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from services.common.policies import DEFAULT_POLICY, policy_env_config
-from zetta.client import Gateway, SessionGroup
+from zetta.client import Gateway, SessionGroup, ZettaError
+from zetta.credentials import ClientCredentials, add_credential_flags, credentials_from_args
 from services.ops.hops import histograms, scrape
 from zetta_wire.stats import wilson
 from zetta_wire.v1 import types_pb2
@@ -63,11 +67,12 @@ class DemoResult:
 
 
 async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int,
-                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS) -> DemoResult:
+                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS,
+                   credentials: ClientCredentials | None = None) -> DemoResult:
     """Create ``episodes`` sessions, run one episode in each concurrently, close them.
 
     The sessions render what ``model`` reads (the shipped image VLA: its camera, at its size)."""
-    async with Gateway(address) as gw:
+    async with Gateway(address, **(credentials or ClientCredentials()).gateway_kwargs()) as gw:
         t0 = time.perf_counter()
         sessions = await gw.create_sessions(
             env_family="libero", n=episodes, env_config={"suite": suite, "task": task, **policy_env_config(model)}
@@ -154,8 +159,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         for svc in stack.services.values():
             print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
         if args.demo:
+            # The stack's services read ZETTA_TLS_* from this environment; so does the demo client.
             res = asyncio.run(run_demo(stack.gateway_address, args.episodes, args.suite, args.task, args.mode,
-                                       args.max_steps, args.model, args.execute_steps))
+                                       args.max_steps, args.model, args.execute_steps, ClientCredentials.from_env()))
             report(res, [s.metrics_url for s in stack.services.values()])
         else:
             print("Ctrl-C to stop")
@@ -176,14 +182,14 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     res = asyncio.run(run_demo(args.gateway, args.episodes, args.suite, args.task, args.mode, args.max_steps,
-                               args.model, args.execute_steps))
+                               args.model, args.execute_steps, credentials_from_args(args)))
     report(res, args.metrics or [])
     return 0
 
 
 def cmd_workers(args: argparse.Namespace) -> int:
     async def go() -> None:
-        async with Gateway(args.gateway) as gw:
+        async with Gateway(args.gateway, **credentials_from_args(args).gateway_kwargs()) as gw:
             for w in await gw.list_workers():
                 state = "alive" if w.alive else "DEAD"
                 print(f"{w.worker_id:<24} {w.address:<22} {state:<6} {w.free_slots}/{w.slots} free  {','.join(w.env_families)}")
@@ -194,7 +200,7 @@ def cmd_workers(args: argparse.Namespace) -> int:
 
 def cmd_sessions(args: argparse.Namespace) -> int:
     async def go() -> None:
-        async with Gateway(args.gateway) as gw:
+        async with Gateway(args.gateway, **credentials_from_args(args).gateway_kwargs()) as gw:
             for s in await gw.list_sessions():
                 state = types_pb2.SessionState.Name(s.state).removeprefix("SESSION_STATE_")
                 print(f"{s.session_id}  {s.env_family:<10} {state:<11} {s.worker_id:<16} {s.reason}")
@@ -252,13 +258,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     demo.add_argument("--gateway", default="127.0.0.1:50051")
     demo.add_argument("--metrics", nargs="*", help="/metrics URLs to read hop latency from")
     _demo_args(demo)
+    add_credential_flags(demo)
     demo.set_defaults(func=cmd_demo)
     for name, fn in (("workers", cmd_workers), ("sessions", cmd_sessions)):
         p = sub.add_parser(name, help=f"list {name}")
         p.add_argument("--gateway", default="127.0.0.1:50051")
+        add_credential_flags(p)
         p.set_defaults(func=fn)
     args = parser.parse_args(argv)
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    except (ZettaError, OSError, ValueError) as exc:  # a refused call, an unreadable certificate
+        print(f"zetta {args.cmd}: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

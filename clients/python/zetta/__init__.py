@@ -10,9 +10,11 @@ from zetta.client import (
     StepStream,
     ZettaError,
 )
+from zetta.credentials import ClientCredentials
 from zetta.sync import SyncGateway
 
 __all__ = [
+    "ClientCredentials",
     "EpisodeSummary",
     "Gateway",
     "ResetResult",
