@@ -147,12 +147,14 @@ class PolicyClient:
             self._hold_timer.cancel()
             self._hold_timer = None
         pending, self._pending = self._pending, []
-        # One call per model (items of different models never share a policy batch anyway): the
-        # policy worker fails a call whole, so an item asking for a model it does not serve must
-        # not share a call with other sessions' items.
-        calls: dict[str, list[_Pending]] = {}
+        # One call per (model, budget): the policy worker fails a call whole, so an item asking for
+        # a model it does not serve, or with a budget too short to meet (a client's timeout_ms of
+        # 1), must not share a call with other sessions' items. Items of different models never
+        # share a policy batch anyway, and the policy worker batches items of different calls
+        # that arrive together.
+        calls: dict[tuple[str, int], list[_Pending]] = {}
         for p in pending:
-            calls.setdefault(p.item.model, []).append(p)
+            calls.setdefault((p.item.model, p.item.timeout_ms), []).append(p)
         for batch in calls.values():
             metrics.INFER_CALL_ITEMS.observe(len(batch))
             metrics.INFER_HOLD_SECONDS.observe(asyncio.get_running_loop().time() - batch[0].arrival)
