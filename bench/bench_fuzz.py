@@ -263,7 +263,8 @@ def summary(result: dict[str, Any]) -> str:
     fz, good, lat = result["fuzz"], result["good"], result["latency_ms"]
     lines = [
         f"fuzz: {fz['sent']} malformed requests of {result['kinds']} kinds over {result['seconds'] / 2:.0f} s "
-        f"of fuzzed windows ({result['rate_per_s']:g}/s), {fz['wrong_count']} with a wrong status; "
+        f"of fuzzed windows ({fz['sent'] / max(result['seconds'] / 2, 1e-9):.1f}/s of {result['rate_per_s']:g}/s "
+        f"asked), {fz['wrong_count']} with a wrong status; "
         f"slowest answer {fz['slowest_s'] * 1e3:.0f} ms",
     ]
     for w in fz["wrong"][:10]:
