@@ -21,6 +21,7 @@ from grpc_health.v1._async import HealthServicer
 from grpc_reflection.v1alpha import reflection
 from prometheus_client import start_http_server
 
+from services.common.decode_guard import DecodeGuard
 from services.common.tls import read_tls, server_credentials
 from zetta_wire.channel import MAX_MESSAGE_BYTES
 
@@ -60,6 +61,8 @@ class ServiceRunner:
     async def start(self) -> None:
         """Bind, start serving and mark every service SERVING."""
         self.server = grpc.aio.server(
+            # Undecodable requests: INVALID_ARGUMENT naming the method, not UNKNOWN.
+            interceptors=[DecodeGuard()],
             options=[
                 ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
                 ("grpc.max_receive_message_length", self.max_receive_bytes),

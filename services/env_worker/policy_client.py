@@ -35,6 +35,12 @@ from zetta_wire.codec import encode
 from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
 
 
+#: Statuses of an Infer call that one item can cause while the others were fine: the call is
+#: retried item by item. The policy worker checks every item (model, tensors, budget) before it
+#: runs any, so a refusal of those costs no inference twice.
+_ITEM_ERRORS = frozenset({grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND})
+
+
 @dataclass(frozen=True)
 class InferHold:
     """When requests wait for each other (module doc); ``max_ms`` 0 sends each loop turn's at once."""
@@ -140,8 +146,16 @@ class PolicyClient:
         if self._hold_timer is not None:
             self._hold_timer.cancel()
             self._hold_timer = None
-        batch, self._pending = self._pending, []
-        if batch:
+        pending, self._pending = self._pending, []
+        # One call per (model, budget): the policy worker fails a call whole, so an item asking for
+        # a model it does not serve, or with a budget too short to meet (a client's timeout_ms of
+        # 1), must not share a call with other sessions' items. Items of different models never
+        # share a policy batch anyway, and the policy worker batches items of different calls
+        # that arrive together.
+        calls: dict[tuple[str, int], list[_Pending]] = {}
+        for p in pending:
+            calls.setdefault((p.item.model, p.item.timeout_ms), []).append(p)
+        for batch in calls.values():
             metrics.INFER_CALL_ITEMS.observe(len(batch))
             metrics.INFER_HOLD_SECONDS.observe(asyncio.get_running_loop().time() - batch[0].arrival)
             asyncio.ensure_future(self._send(batch))
@@ -155,6 +169,11 @@ class PolicyClient:
             resp = await stub.Infer(policy_worker_pb2.InferRequest(items=[p.item for p in batch]), timeout=budget)
         except grpc.aio.AioRpcError as err:
             metrics.POLICY_ERRORS.labels(err.code().name).inc()
+            if len(batch) > 1 and err.code() in _ITEM_ERRORS:
+                # One item's fault (its instruction, its observation) failed the call: each item
+                # again on its own, so only the faulty one fails.
+                await asyncio.gather(*(self._send([p]) for p in batch))
+                return
             error = ge.from_rpc_error(err, "policy worker", component="policy worker")
             for p in batch:
                 if not p.future.done():

@@ -169,8 +169,13 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
                           instruction=spec.instruction, video_path=video_path)
             )
         except ResetError as exc:
-            raise ge.invalid(f"reset of session {slot.session_id}: {exc}", [slot.session_id]) from None
+            # The env dropped its episode when the reset began: so does the slot, so the next step
+            # is FAILED_PRECONDITION "call Reset first" rather than an env error.
+            slot.episode = None
+            raise ge.invalid(f"reset of session {slot.session_id}: {exc}; the session has no running episode "
+                             "until a reset succeeds", [slot.session_id]) from None
         except VideoError as exc:
+            slot.episode = None
             raise ge.ServiceError(grpc.StatusCode.INTERNAL, f"video of session {slot.session_id}: {exc}") from None
         episode = Episode(
             episode_id=episode_id,

@@ -26,6 +26,7 @@ from services.env_worker.families import (
     ConfigError,
     EnvFamily,
     EpisodeError,
+    SlotClosedError,
     UnknownFamilyError,
     canonical_config_key,
     get_family,
@@ -125,12 +126,15 @@ class BoundSlot:
         except asyncio.CancelledError:
             abandoned.set()
             raise
-        except EpisodeError as exc:  # the slot closed or its episode ended under a call that had begun
+        except SlotClosedError as exc:  # the slot closed under a call that had begun
             raise ge.ServiceError(
                 grpc.StatusCode.ABORTED,
                 f"session {self.session_id}: {exc} while the call ran (the session was closed, or the gateway "
                 "declared this worker dead and its sessions LOST); create or reset a session to go on",
                 [self.session_id]) from None
+        except EpisodeError as exc:  # the env has no episode the slot's record did not know of
+            self.episode = None
+            raise ge.failed_precondition(f"session {self.session_id}: {exc}", [self.session_id]) from None
         finally:
             self.activity.leave()
 

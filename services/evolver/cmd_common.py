@@ -57,12 +57,11 @@ def llm_from_env() -> LLMConfig | None:
 
 def publish_dir(registry: str, path: Path) -> str:
     """Publish a package directory (a harness from another stack) and return its reference."""
-    import grpc
-
+    from services.common.tls import sync_channel
     from services.harness.package.format import read_tree
     from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
-    with grpc.insecure_channel(registry) as ch:
+    with sync_channel(registry) as ch:  # mutual TLS when ZETTA_TLS_* are set, as RegistryClient
         files = {k: v for k, v in read_tree(path).items() if k != "manifest.json"}
         m = critic_pb2_grpc.HarnessRegistryServiceStub(ch).Publish(critic_pb2.PublishRequest(files=files), timeout=30)
     return f"{m.manifest.name}@{m.manifest.version}"

@@ -22,7 +22,7 @@ import grpc
 from services.common.policies import DEFAULT_POLICY
 from services.evolver.store import EpisodeKey, Outcome, Rollout, RolloutStore
 from services.evolver.trace import TraceRecorder
-from zetta import Gateway, SessionGroup, ZettaError
+from zetta import ClientCredentials, Gateway, SessionGroup, ZettaError
 from zetta_wire.codec import decode, decode_observation
 from zetta_wire.v1 import gateway_pb2, types_pb2
 
@@ -135,7 +135,8 @@ class Runner:
                 todo.put_nowait(k)
         if todo.empty():
             return [results[k] for k in keys]
-        async with Gateway(self.cfg.gateway) as gw:
+        # Token and TLS from ZETTA_TOKEN and ZETTA_TLS_* (docs/security.md), as every zetta command.
+        async with Gateway(self.cfg.gateway, **ClientCredentials.from_env().gateway_kwargs()) as gw:
             workers = [self._worker(gw, todo, results, round_, on_done)
                        for _ in range(min(self.cfg.concurrency, todo.qsize()))]
             await asyncio.gather(*workers)

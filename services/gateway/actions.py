@@ -15,6 +15,10 @@ from zetta_wire.v1 import types_pb2
 
 #: Most actions one ActionStep may execute per session (a chunk), and most a PolicySpec may ask for.
 MAX_CHUNK = 256
+#: Longest instruction (PolicySpec, ResetSpec) and longest task or harness name (ResetSpec): these
+#: strings go on to the policy's text encoder and the harness registry, so they are bounded here.
+MAX_INSTRUCTION_CHARS = 2000
+MAX_NAME_CHARS = 256
 
 
 def _where(values: np.ndarray, mask: np.ndarray) -> tuple[str, float]:
@@ -55,3 +59,17 @@ def check_policy_spec(policy: types_pb2.PolicySpec) -> None:
         )
     if policy.timeout_ms < 0:
         raise ge.invalid(f"policy.timeout_ms must be >= 0 (0: the server default), got {policy.timeout_ms}")
+    if len(policy.instruction) > MAX_INSTRUCTION_CHARS:
+        raise ge.invalid(f"policy.instruction has {len(policy.instruction)} characters; at most {MAX_INSTRUCTION_CHARS}")
+    if len(policy.model) > MAX_NAME_CHARS:
+        raise ge.invalid(f"policy.model has {len(policy.model)} characters; at most {MAX_NAME_CHARS}")
+
+
+def check_reset_spec(spec: types_pb2.ResetSpec, what: str = "spec") -> None:
+    """Refuse a ResetSpec whose strings are longer than any real one (INVALID_ARGUMENT)."""
+    if len(spec.instruction) > MAX_INSTRUCTION_CHARS:
+        raise ge.invalid(f"{what}.instruction has {len(spec.instruction)} characters; at most {MAX_INSTRUCTION_CHARS}")
+    for field in ("task", "harness", "harness_dir"):
+        value = getattr(spec, field)
+        if len(value) > MAX_NAME_CHARS:
+            raise ge.invalid(f"{what}.{field} has {len(value)} characters; at most {MAX_NAME_CHARS}")

@@ -24,7 +24,7 @@ from services.common.metrics import HOP_LATENCY
 from services.common.primitives import check_motion, check_queries
 from zetta_wire.codec import TensorDecodeError, dtype_from_wire
 from services.gateway import metrics
-from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec
+from services.gateway.actions import MAX_CHUNK, check_action_values, check_policy_spec, check_reset_spec
 from services.gateway.auth import CALLER, Authenticator
 from services.gateway.bounds import check_session_ids, name_ids
 from services.gateway.config import GatewayConfig
@@ -162,6 +162,8 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         return out
 
     def _specs_for(self, n: int, specs: Sequence[types_pb2.ResetSpec], what: str) -> list[types_pb2.ResetSpec]:
+        for i, spec in enumerate(specs):
+            check_reset_spec(spec, f"{what}[{i}]")
         if len(specs) == 1:
             return [specs[0]] * n
         if len(specs) != n:
@@ -184,7 +186,10 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
         if request.lease_seconds < 0 or request.lease_seconds > self.cfg.max_lease_seconds:
             raise ge.invalid(f"lease_seconds must be between 0 and {self.cfg.max_lease_seconds}, got {request.lease_seconds}")
         lease_ms = (request.lease_seconds or self.cfg.default_lease_seconds) * 1000
-        config = json_format.MessageToDict(request.env_config)
+        try:
+            config = json_format.MessageToDict(request.env_config)
+        except (ValueError, json_format.Error) as exc:  # NaN and infinities have no JSON form
+            raise ge.invalid(f"env_config cannot be read: {exc}; numbers must be finite") from None
         try:
             allocated = await self.registry.allocate(family, request.count, lease_ms, config,
                                                      hold_ms=self.cfg.create_timeout_ms, owner=CALLER.get().name)
@@ -473,6 +478,7 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
                 op = req.WhichOneof("op")
                 try:
                     if op == "reset":
+                        check_reset_spec(req.reset, "reset")
                         res = await stub.ResetSlots(
                             env_worker_pb2.ResetSlotsRequest(session_ids=[sid], specs=[req.reset]),
                             timeout=self._timeout(self.cfg.reset_timeout_ms),

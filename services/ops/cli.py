@@ -9,6 +9,9 @@
   zetta demo [mission|throughput] --gateway ADDR
                                run a demo against a stack that is already up
   zetta workers|sessions --gateway ADDR
+                               (demo, workers, sessions and harness take --token-file, --tls-ca,
+                               --tls-cert, --tls-key, or ZETTA_TOKEN, ZETTA_TLS_CA, ZETTA_TLS_CERT,
+                               ZETTA_TLS_KEY, for a stack with auth or TLS on: docs/security.md)
   zetta train [--variant state|image] [--data DEMOS.npz ...]
                                oracle demos (clean + DART) on LIBERO-Goal, train the Zetta VLA, DAgger
   zetta eval-policy [--model zetta-vla-image] [--suites ...] [--seeds N]
@@ -38,7 +41,8 @@ from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, policy_env_config
 from services.common.progress import add_progress_option, progress
-from zetta.client import Gateway, SessionGroup
+from zetta.client import Gateway, SessionGroup, ZettaError
+from zetta.credentials import ClientCredentials, add_credential_flags, credentials_from_args
 from services.ops.hops import histograms, scrape
 from zetta_wire.stats import wilson
 from zetta_wire.v1 import types_pb2
@@ -70,11 +74,12 @@ class DemoResult:
 
 
 async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int,
-                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS) -> DemoResult:
+                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS,
+                   credentials: ClientCredentials | None = None) -> DemoResult:
     """Create ``episodes`` sessions, run one episode in each concurrently, close them.
 
     The sessions render what ``model`` reads (the shipped image VLA: its camera, at its size)."""
-    async with Gateway(address) as gw:
+    async with Gateway(address, **(credentials or ClientCredentials()).gateway_kwargs()) as gw:
         t0 = time.perf_counter()
         sessions = await gw.create_sessions(
             env_family="libero", n=episodes, env_config={"suite": suite, "task": task, **policy_env_config(model)}
@@ -149,11 +154,12 @@ def report(res: DemoResult, metrics_urls: Sequence[str]) -> None:
     print_hops(metrics_urls)
 
 
-def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequence[str]) -> None:
+def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequence[str],
+                    credentials: ClientCredentials) -> None:
     """The mission demo (default) or the throughput demo, against the gateway at ``address``."""
     if args.demo == "throughput":
         res = asyncio.run(run_demo(address, args.episodes or 16, args.suite or "libero_goal", args.task or DEFAULT_TASK,
-                                   args.mode, args.max_steps, args.model, args.execute_steps))
+                                   args.mode, args.max_steps, args.model, args.execute_steps, credentials))
         report(res, metrics_urls)
         return
     from services.ops.mission_demo import MissionSpec, run_mission, summary
@@ -164,7 +170,7 @@ def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequen
         spec.harness_dir = Path(args.harness)
     print(f"mission demo: {len(spec.seeds)} seeds x 3 conditions (bare, harness, do-nothing control) ...", flush=True)
     print()
-    res = asyncio.run(run_mission(address, spec))
+    res = asyncio.run(run_mission(address, spec, credentials=credentials))
     assert res.report_path is not None
     print(summary(json.loads(res.report_path.read_text()), res.report_path))
 
@@ -191,7 +197,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         for svc in stack.services.values():
             print(f"  {svc.name:<10} grpc {svc.address:<18} metrics {svc.metrics_url}")
         if args.demo:
-            run_chosen_demo(args, stack.gateway_address, [s.metrics_url for s in stack.services.values()])
+            # The stack's services read ZETTA_TLS_* from this environment; so does the demo client.
+            run_chosen_demo(args, stack.gateway_address, [s.metrics_url for s in stack.services.values()],
+                            ClientCredentials.from_env())
         else:
             print("Ctrl-C to stop")
             # sigwait needs the signals blocked: an unblocked SIGTERM (kill, docker stop) would
@@ -210,13 +218,13 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    run_chosen_demo(args, args.gateway, args.metrics or [])
+    run_chosen_demo(args, args.gateway, args.metrics or [], credentials_from_args(args))
     return 0
 
 
 def cmd_workers(args: argparse.Namespace) -> int:
     async def go() -> None:
-        async with Gateway(args.gateway) as gw:
+        async with Gateway(args.gateway, **credentials_from_args(args).gateway_kwargs()) as gw:
             for w in await gw.list_workers():
                 state = "alive" if w.alive else "DEAD"
                 print(f"{w.worker_id:<24} {w.address:<22} {state:<6} {w.free_slots}/{w.slots} free  {','.join(w.env_families)}")
@@ -227,7 +235,7 @@ def cmd_workers(args: argparse.Namespace) -> int:
 
 def cmd_sessions(args: argparse.Namespace) -> int:
     async def go() -> None:
-        async with Gateway(args.gateway) as gw:
+        async with Gateway(args.gateway, **credentials_from_args(args).gateway_kwargs()) as gw:
             for s in await gw.list_sessions():
                 state = types_pb2.SessionState.Name(s.state).removeprefix("SESSION_STATE_")
                 print(f"{s.session_id}  {s.env_family:<10} {state:<11} {s.worker_id:<16} {s.reason}")
@@ -291,13 +299,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     demo.add_argument("--gateway", default="127.0.0.1:50051")
     demo.add_argument("--metrics", nargs="*", help="/metrics URLs to read hop latency from")
     _demo_args(demo)
+    add_credential_flags(demo)
     demo.set_defaults(func=cmd_demo)
     for name, fn in (("workers", cmd_workers), ("sessions", cmd_sessions)):
         p = sub.add_parser(name, help=f"list {name}")
         p.add_argument("--gateway", default="127.0.0.1:50051")
+        add_credential_flags(p)
         p.set_defaults(func=fn)
     args = parser.parse_args(argv)
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    except (ZettaError, OSError, ValueError) as exc:  # a refused call, an unreadable certificate
+        print(f"zetta {args.cmd}: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

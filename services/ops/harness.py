@@ -7,7 +7,10 @@
   zetta harness pin TASK [REF]          (without REF: print the task's pin)
 
 A reference is NAME@VERSION, NAME@latest (or NAME), or NAME@pinned with --task. The critic
-service address comes from --critic or ZETTA_CRITIC_ADDR (default 127.0.0.1:50081).
+service address comes from --critic or ZETTA_CRITIC_ADDR (default 127.0.0.1:50081). With TLS on
+(docs/security.md) give the CA and a client certificate the critic service accepts: --tls-ca,
+--tls-cert, --tls-key or ZETTA_TLS_CA, ZETTA_TLS_CERT, ZETTA_TLS_KEY, as for the SDK
+(zetta.ClientCredentials).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 
 from services.harness.package.format import read_tree
 from zetta.client import ZettaError
+from zetta.credentials import ClientCredentials, add_credential_flags, credentials_from_args
 from zetta_wire.channel import CHANNEL_OPTIONS
 from zetta_wire.codec import decode, encode, encode_observation
 from zetta_wire.v1 import critic_pb2, critic_pb2_grpc, types_pb2
@@ -88,10 +92,13 @@ def write_package(files: Mapping[str, bytes], out: str | Path) -> None:
 class HarnessRegistry:
     """Blocking client of HarnessRegistryService (publishing is not on any hot path)."""
 
-    def __init__(self, address: str | None = None, timeout: float = 120.0) -> None:
+    def __init__(self, address: str | None = None, timeout: float = 120.0,
+                 credentials: ClientCredentials | None = None) -> None:
+        """``credentials``: TLS settings (None: from ZETTA_TLS_CA, ZETTA_TLS_CERT, ZETTA_TLS_KEY)."""
         self.address = address or default_address()
         self.timeout = timeout
-        self._channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
+        creds = credentials if credentials is not None else ClientCredentials.from_env()
+        self._channel = creds.sync_channel(self.address, CHANNEL_OPTIONS)
         self._stub = critic_pb2_grpc.HarnessRegistryServiceStub(self._channel)
 
     def __enter__(self) -> "HarnessRegistry":
@@ -182,8 +189,10 @@ class Evaluation:
 
     Use ``async with evaluate(...) as ev`` so the stream is closed when the episode ends."""
 
-    def __init__(self, address: str, harness: str, instruction: str, milestone_names: Sequence[str], task: str) -> None:
-        self._channel = grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+    def __init__(self, address: str, harness: str, instruction: str, milestone_names: Sequence[str], task: str,
+                 credentials: ClientCredentials | None = None) -> None:
+        creds = credentials if credentials is not None else ClientCredentials.from_env()
+        self._channel = creds.aio_channel(address, CHANNEL_OPTIONS)
         self._call = critic_pb2_grpc.CriticServiceStub(self._channel).Evaluate()
         self._start = critic_pb2.EvaluateStart(
             harness=harness, task=task, instruction=instruction, milestone_names=list(milestone_names)
@@ -249,10 +258,11 @@ class Evaluation:
 
 
 def evaluate(
-    harness: str, instruction: str, milestone_names: Sequence[str] = (), task: str = "", address: str | None = None
+    harness: str, instruction: str, milestone_names: Sequence[str] = (), task: str = "", address: str | None = None,
+    credentials: ClientCredentials | None = None,
 ) -> Evaluation:
     """An Evaluate stream for one episode of ``harness`` (a reference; empty uses ``task``'s pin)."""
-    return Evaluation(address or default_address(), harness, instruction, milestone_names, task)
+    return Evaluation(address or default_address(), harness, instruction, milestone_names, task, credentials)
 
 
 # ---- command line -----------------------------------------------------------------------------
@@ -322,6 +332,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """`zetta harness ...`: exit 1 with the service's message when a call fails."""
     parser = argparse.ArgumentParser(prog="zetta harness", description="Versioned harness packages in the registry")
     parser.add_argument("--critic", default=None, help=f"critic service address (default $ZETTA_CRITIC_ADDR or {DEFAULT_ADDRESS})")
+    add_credential_flags(parser)
     sub = parser.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("publish", help="validate and publish a package directory")
     p.add_argument("dir")
@@ -347,7 +358,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.set_defaults(func=_cmd_pin)
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
-        with HarnessRegistry(args.critic) as reg:
+        with HarnessRegistry(args.critic, credentials=credentials_from_args(args)) as reg:
             return int(args.func(reg, args))
     except (ZettaError, OSError, ValueError) as exc:
         print(f"zetta harness {args.cmd}: {exc}", file=sys.stderr)

@@ -27,6 +27,7 @@ from typing import Any
 from services.common.policies import DEFAULT_POLICY, checkpoint_dir, policy_env_config
 from services.harness.package import format as package_format
 from zetta.client import EpisodeSummary, Gateway, SessionGroup, ZettaError
+from zetta.credentials import ClientCredentials
 from zetta_wire.stats import wilson
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -103,14 +104,15 @@ async def _episodes(group: SessionGroup, spec: MissionSpec, seeds: Sequence[int]
     raise AssertionError("unreachable")
 
 
-async def run_mission(address: str, spec: MissionSpec, log: Any = print) -> MissionResult:
+async def run_mission(address: str, spec: MissionSpec, log: Any = print,
+                      credentials: ClientCredentials | None = None) -> MissionResult:
     """Run the three conditions on ``spec.seeds`` (one session per seed, the conditions one after the
     other on the same sessions), then replay one recovered episode with a video."""
     harness_dir = str(Path(spec.harness_dir).resolve())
     t0 = time.perf_counter()
     results: dict[str, ConditionResult] = {}
     video, video_seed = "", None
-    async with Gateway(address) as gw:
+    async with Gateway(address, **(credentials or ClientCredentials()).gateway_kwargs()) as gw:
         group = await gw.create_sessions(env_family="libero", n=len(spec.seeds),
                                          env_config={"suite": spec.suite, **policy_env_config(spec.model)})
         try:

@@ -127,7 +127,8 @@ async def test_a_request_is_held_at_most_half_its_timeout(policy_worker) -> None
         await asyncio.sleep(0.02)
         hurried = asyncio.ensure_future(client.infer("hurried", MODEL, OBS, "put it in", 200))  # held <= 100 ms
         await asyncio.wait_for(asyncio.gather(patient, hurried), 5)
-        assert time.monotonic() - start < 1.0 and batches.sizes == [2]
+        # Both left when the hurried one had to; in a call per budget (test_a_too_short_budget_...).
+        assert time.monotonic() - start < 1.0 and batches.sizes == [1, 1]
 
 
 async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) -> None:
@@ -179,3 +180,66 @@ async def test_step_concurrency_bounds_the_slots_working_at_once() -> None:
         unbounded.shutdown()
     finally:
         table.shutdown()
+
+
+async def test_a_bad_item_fails_only_its_own_session(policy_worker) -> None:
+    """Items of one loop turn travel together, but one that cannot succeed (a model the policy
+    worker does not serve, a wrong observation) fails alone: the policy worker fails a call whole,
+    and it used to fail every session coalesced with the bad one (found by bench/bench_fuzz.py:
+    a fuzzer's unknown model reached a good session as NOT_FOUND)."""
+    from services.common.grpc_errors import ServiceError
+
+    address, batches = policy_worker
+    bad_obs = {**OBS, "robot0_eef_pos": np.zeros(5, np.float32)}
+    async with _busy_worker(address, InferHold(max_ms=5000, min_busy=2), busy=3) as (client, activity):
+        tasks = [asyncio.ensure_future(client.infer(token, model, obs, "put it in", 5000)) for token, model, obs in (
+            ("good-0", MODEL, OBS), ("unknown-model", "no-such-model", OBS), ("good-1", MODEL, OBS),
+            ("bad-observation", MODEL, bad_obs))]
+        await asyncio.sleep(0.1)
+        assert not any(t.done() for t in tasks), "held together while the slots are busy"
+        activity.leave()
+        activity.leave()  # they leave in one turn
+        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 5)
+    assert [r.token for r in results if not isinstance(r, BaseException)] == ["good-0", "good-1"]
+    unknown, bad = results[1], results[3]
+    assert isinstance(unknown, ServiceError) and unknown.code == grpc.StatusCode.NOT_FOUND
+    assert "no-such-model" in unknown.message
+    assert isinstance(bad, ServiceError) and bad.code == grpc.StatusCode.INVALID_ARGUMENT
+
+
+@pytest.fixture
+async def slow_policy_worker() -> AsyncIterator[str]:
+    """The scripted policy taking 30 ms a batch, so the scheduler's estimate rejects a 1 ms budget."""
+    models = {MODEL: load_model(MODEL)}
+
+    def run_batch(m, inputs, instr):  # type: ignore[no-untyped-def]
+        time.sleep(0.03)
+        return models[m].infer(inputs, instr)
+
+    scheduler = BatchScheduler(run_batch, SchedulerConfig(max_batch=32, max_queue_delay=0.0, early_dispatch=False),
+                               NullObserver())
+    server = grpc.aio.server()
+    policy_worker_pb2_grpc.add_PolicyWorkerServiceServicer_to_server(
+        PolicyWorkerServicer(models, MODEL, scheduler, 5000), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    try:
+        yield f"127.0.0.1:{port}"
+    finally:
+        await server.stop(None)
+        await scheduler.drain()
+
+
+async def test_a_too_short_budget_fails_only_its_own_session(slow_policy_worker: str) -> None:
+    """An item whose timeout cannot be met (1 ms against 30 ms batches) makes the policy worker
+    fail the call with DEADLINE_EXCEEDED; the items with a normal budget that travelled with it are
+    answered (they used to fail with it)."""
+    from services.common.grpc_errors import ServiceError
+
+    async with _busy_worker(slow_policy_worker, InferHold(max_ms=5000, min_busy=2), busy=3) as (client, activity):
+        await client.infer("warm-up", MODEL, OBS, "put it in", 5000)  # the scheduler's batch-time estimate
+        tasks = [asyncio.ensure_future(client.infer(token, MODEL, OBS, "put it in", timeout)) for token, timeout in (
+            ("good-0", 5000), ("hurried", 1), ("good-1", 5000))]
+        results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 5)
+    assert [r.token for r in results if not isinstance(r, BaseException)] == ["good-0", "good-1"]
+    assert isinstance(results[1], ServiceError) and results[1].code == grpc.StatusCode.DEADLINE_EXCEEDED

@@ -12,9 +12,11 @@ from zetta.client import (
     StepStream,
     ZettaError,
 )
+from zetta.credentials import ClientCredentials
 from zetta.sync import SyncGateway
 
 __all__ = [
+    "ClientCredentials",
     "Detection",
     "EpisodeSummary",
     "Gateway",

@@ -79,6 +79,10 @@ class EpisodeError(RuntimeError):
     """A slot was stepped or observed outside an episode (before the first reset or after its end)."""
 
 
+class SlotClosedError(EpisodeError):
+    """The slot was closed (its session closed, or its worker declared dead) while a call used it."""
+
+
 # ---------------------------------------------------------------------------------------------
 # Family and slot interfaces
 

@@ -11,7 +11,14 @@ import numpy as np
 
 from services.common.specs import TensorSpec
 from services.env_worker import rendering
-from services.env_worker.families.contract import EpisodeError, ResetError, ResetSpec, Slot, StepOutcome
+from services.env_worker.families.contract import (
+    EpisodeError,
+    ResetError,
+    ResetSpec,
+    Slot,
+    SlotClosedError,
+    StepOutcome,
+)
 from services.env_worker.families.schema import normalize_observation
 
 
@@ -165,4 +172,4 @@ class EpisodeSlot(Slot):
 
     def _check_open(self) -> None:
         if self._closed:
-            raise EpisodeError("the slot is closed")
+            raise SlotClosedError("the slot is closed")

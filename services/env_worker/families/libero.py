@@ -31,7 +31,16 @@ import numpy as np
 from services.common.specs import TensorSpec
 from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
 from services.env_worker.families.episode import EpisodeSlot
-from services.env_worker.families.options import bool_option, camera_option, check_keys, int_option
+from services.env_worker.families.options import (
+    MAX_CAMERA_SIZE,
+    MAX_EPISODE_STEPS,
+    MAX_OBJECT_STATE_DIM,
+    MAX_SETTLE_STEPS,
+    bool_option,
+    camera_option,
+    check_keys,
+    int_option,
+)
 from services.env_worker.families.pool import EnvPool
 from services.env_worker.families.registry import register_family
 from services.env_worker.families.schema import OSC_POSE_ACTION, manipulation_schema, zero_padded
@@ -177,11 +186,13 @@ class LiberoFamily(PooledGroup, EnvFamily):
             "suite": suite,
             "task": task,
             "cameras": camera_option(cls.name, config, LIBERO_CAMERAS),
-            "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8),
+            "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8, maximum=MAX_CAMERA_SIZE),
             "reflections": bool_option(cls.name, config, "reflections", True),
-            "max_steps": int_option(cls.name, config, "max_steps", default_steps or 0, minimum=1),
-            "settle_steps": int_option(cls.name, config, "settle_steps", 10),
-            "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM),
+            "max_steps": int_option(cls.name, config, "max_steps", default_steps or 0, minimum=1,
+                                     maximum=MAX_EPISODE_STEPS),
+            "settle_steps": int_option(cls.name, config, "settle_steps", 10, maximum=MAX_SETTLE_STEPS),
+            "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM,
+                                             maximum=MAX_OBJECT_STATE_DIM),
             "fast_step": bool_option(cls.name, config, "fast_step", True),
         }
 

@@ -18,13 +18,28 @@ def check_keys(family: str, config: Mapping[str, Any], allowed: Sequence[str]) -
         raise ConfigError(f"{family}: unknown config keys {unknown}; valid keys: {sorted(allowed)}")
 
 
-def int_option(family: str, config: Mapping[str, Any], key: str, default: int, minimum: int = 0) -> int:
-    """An integer option that also accepts integral floats, as JSON and protobuf Structs send them."""
+#: Upper bounds of the size-like options every family shares: a config is client input, and an
+#: unbounded ``camera_size`` or ``object_state_dim`` would have the env worker allocate whatever a
+#: client asks for (1e9 is 4 GB per observation), an unbounded ``settle_steps`` would hold a slot
+#: for hours, and a ``max_steps`` beyond int32 cannot be sent back in a ResetResult.
+MAX_CAMERA_SIZE = 1024
+MAX_OBJECT_STATE_DIM = 4096
+MAX_EPISODE_STEPS = 100_000
+MAX_SETTLE_STEPS = 1000
+MAX_CONTROL_FREQ = 1000
+
+
+def int_option(family: str, config: Mapping[str, Any], key: str, default: int, minimum: int = 0,
+               maximum: int | None = None) -> int:
+    """An integer option that also accepts integral floats, as JSON and protobuf Structs send them,
+    between ``minimum`` and ``maximum`` (inclusive; no upper bound when None)."""
     value = config.get(key, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not float(value).is_integer():
         raise ConfigError(f"{family}: {key} must be an integer, got {value!r}")
     if value < minimum:
         raise ConfigError(f"{family}: {key} must be >= {minimum}, got {value!r}")
+    if maximum is not None and value > maximum:
+        raise ConfigError(f"{family}: {key} must be <= {maximum}, got {value!r}")
     return int(value)
 
 

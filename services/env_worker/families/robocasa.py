@@ -51,7 +51,16 @@ import numpy as np
 from services.common.specs import TensorSpec
 from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
 from services.env_worker.families.episode import EpisodeSlot
-from services.env_worker.families.options import bool_option, camera_option, check_keys, int_option
+from services.env_worker.families.options import (
+    MAX_CAMERA_SIZE,
+    MAX_CONTROL_FREQ,
+    MAX_EPISODE_STEPS,
+    MAX_OBJECT_STATE_DIM,
+    bool_option,
+    camera_option,
+    check_keys,
+    int_option,
+)
 from services.env_worker.families.pool import EnvPool
 from services.env_worker.families.registry import register_family
 from services.env_worker.families.schema import camera_obs_name, manipulation_schema, upright_image, zero_padded
@@ -340,11 +349,12 @@ class RobocasaFamily(EnvFamily):
             "style_ids": _id_list(config, "style_ids"),
             "obj_registries": _registries(config),
             "cameras": camera_option(cls.name, config, ROBOCASA_CAMERAS),
-            "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8),
+            "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8, maximum=MAX_CAMERA_SIZE),
             "reflections": bool_option(cls.name, config, "reflections", True),
-            "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1),
-            "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM),
-            "control_freq": int_option(cls.name, config, "control_freq", 20, minimum=1),
+            "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1, maximum=MAX_EPISODE_STEPS),
+            "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM,
+                                             maximum=MAX_OBJECT_STATE_DIM),
+            "control_freq": int_option(cls.name, config, "control_freq", 20, minimum=1, maximum=MAX_CONTROL_FREQ),
         }
 
     # ---- schema and action, read from a built environment ----
