@@ -163,7 +163,8 @@ def test_split_worker_holds_one_copy_of_each_stage(instruction, monkeypatch) -> 
 
 def test_adapter_contract_with_our_model(policy, instruction, monkeypatch) -> None:
     from services.policy_worker.vla.adapter import (
-        AdapterContractError, ExternalPolicyAdapter, ZettaVLAAdapter, check_actions, register_adapter)
+        AdapterContractError, ExternalPolicyAdapter, ZettaVLAAdapter, check_actions)
+    from services.policy_worker.models.base import register_adapter
 
     monkeypatch.delenv("ZETTA_VLA_NOISE", raising=False)  # the fixture's default start, row for row
     adapter = ZettaVLAAdapter()

@@ -106,6 +106,18 @@ FACTORIES: dict[str, Callable[[], PolicyModel]] = {
 }
 
 
+def register_adapter(name: str, factory: Callable[[], PolicyModel]) -> None:
+    """Make ``name`` loadable by ``ZETTA_MODELS=name`` (call it from a module imported at start-up,
+    e.g. through ``ZETTA_POLICY_PLUGINS``); the built model is served under that name."""
+
+    def build() -> PolicyModel:
+        model = factory()
+        model.name = name
+        return model
+
+    FACTORIES[name] = build
+
+
 def load_model(name: str) -> PolicyModel:
     """Build a served model by name."""
     try:

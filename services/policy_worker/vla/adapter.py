@@ -4,7 +4,7 @@ A user brings a pi0.5 (an openpi or a LeRobot checkpoint on local disk) by writi
 :class:`ExternalPolicyAdapter`: it declares the canonical tensors it reads (``input_specs``), maps
 a stacked batch of canonical observations + instructions to the policy's own input format
 (``to_policy_inputs``), runs the policy (``forward``) and maps its outputs back to
-``[B, chunk, 7]`` float32 OSC_POSE actions (``to_actions``). :func:`register_adapter` adds it to
+``[B, chunk, 7]`` float32 OSC_POSE actions (``to_actions``). :func:`services.policy_worker.models.base.register_adapter` adds it to
 the worker's ``FACTORIES``; the scheduler, batching, deadlines and the gRPC surface are unchanged.
 
 :class:`ZettaVLAAdapter` is our own model through this interface (the adapter contract's tests
@@ -17,7 +17,7 @@ dependency of this repository).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -70,19 +70,6 @@ def check_actions(actions: Any, batch_size: int, chunk_size: int) -> None:
         raise AdapterContractError(f"actions shape {actions.shape}, expected {(batch_size, chunk_size, ACTION_DIM)}")
     if not np.isfinite(actions).all():
         raise AdapterContractError("actions contain NaN or inf")
-
-
-def register_adapter(name: str, factory: Callable[[], ExternalPolicyAdapter]) -> None:
-    """Make ``name`` loadable by ``ZETTA_MODELS=name`` (call it from a module imported at start-up,
-    e.g. through ``ZETTA_POLICY_PLUGINS``)."""
-    from services.policy_worker.models.base import FACTORIES
-
-    def build() -> ExternalPolicyAdapter:
-        adapter = factory()
-        adapter.name = name
-        return adapter
-
-    FACTORIES[name] = build
 
 
 class ZettaVLAAdapter(ExternalPolicyAdapter):
