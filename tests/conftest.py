@@ -40,7 +40,7 @@ def new_stack(**overrides: Any) -> LocalStack:
         "extra_env": {"ZETTA_LOG_LEVEL": "INFO"},
         # Infrastructure tests drive Lift and LIBERO sessions without cameras: the scripted policy
         # reads state (the shipped default, the image VLA, is tested where it is the subject).
-        "models": ("scripted-pick-place",),
+        "models": ("scripted-pick-place", "do-nothing"),
     }
     settings.update(overrides)
     return LocalStack(**settings)

@@ -440,9 +440,10 @@ def test_bad_configuration_exits_2_naming_variable(module: str, env: dict[str, s
 async def test_session_closed_under_a_running_episode_is_aborted_by_name(gw: Gateway) -> None:
     """A RunEpisode whose session is closed while it runs ends with ABORTED naming the session (not
     UNKNOWN), the way a worker declared dead mid-episode ends its callers' calls."""
-    group = await gw.create_sessions("robosuite", n=1, env_config=LIFT)
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 50_000})
     await group.reset(seed=0)
-    running = asyncio.ensure_future(group.run_episode(model="scripted-pick-place", max_steps=2000, execute_steps=1))
+    # An episode the do-nothing policy cannot end early, with a step budget far beyond the close.
+    running = asyncio.ensure_future(group.run_episode(model="do-nothing", max_steps=50_000, execute_steps=1))
     await asyncio.sleep(1.0)
     await gw.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=group.ids))
     err = await expect_error(running, "ABORTED")
