@@ -224,3 +224,37 @@ def test_a_dead_zygote_is_replaced_at_the_next_spawn() -> None:
         assert zygote()._proc is not proc
     finally:
         child.close()
+
+
+def test_perception_answers_go_along_only_while_the_critics_ask_for_them(runtimes) -> None:
+    from services.harness.runtime.perception import QUERIES
+    from services.harness.sandbox.host import PREFETCH_STEPS
+
+    asker = '''
+from services.harness.runtime.api import Proposal
+
+
+def critic_asker(window, params):
+    n = len(window.frames)
+    if n <= 3 or n == 20:
+        d = window.now.perceive("target")
+        return None if d is None else Proposal("asker.asker", "seen", "", {"n": float(n)})
+    return None
+'''
+    rt = HarnessRuntime(sandboxed({}, extra={"asker": asker}))
+    runtimes.append(rt)
+    rt.start("put the bowl on the plate", [])
+    assert rt.sandbox is not None
+    target = QUERIES.index("target")
+    box = np.array([0.1, 0.2, 0.9, 0.14, 0.24, 0.95])
+    seen, prefetching = [], []
+    for _ in range(21):
+        d = rt.step({**obs(0.0), "task_target_bbox": box}, ACT, frozenset())
+        seen += [int(p.details["n"]) for p in d.proposals if p.critic == "asker.asker"]
+        prefetching.append(rt.sandbox._unasked[target] < PREFETCH_STEPS)
+    # Asked on the first frames (a round trip, then sent along), no longer sent once unasked for
+    # PREFETCH_STEPS frames, asked again at frame 20 (a round trip): every answer arrived.
+    assert prefetching[:3 + PREFETCH_STEPS - 1] == [True] * (3 + PREFETCH_STEPS - 1)
+    assert not any(prefetching[3 + PREFETCH_STEPS:19]) and prefetching[19]
+    assert len(seen) >= 3 and seen[-1] == 20  # perception drops a detection now and then (3 %)
+    assert not rt.report.disabled_critics

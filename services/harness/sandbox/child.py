@@ -227,6 +227,9 @@ class Host:
         self.milestone_names: tuple[str, ...] = ()
         self.memory = EpisodeMemory()
         self.recovery: Any = None
+        self.frames = codec.FrameDecoder()
+        #: (step, query) the critics asked this step: which perception answers the host sends along.
+        self.asked: set[tuple[int, str]] = set()
 
     def mark(self, index: int) -> None:
         self._cell_start[0] = time.monotonic()  # the start first: the host reads the index, then the start
@@ -239,6 +242,7 @@ class Host:
         handlers: dict[int, Callable[[memoryview], bytes]] = {
             codec.INIT: self.init, codec.START: self.start, codec.STEP: self.step, codec.PUSH: self.push,
             codec.REC_START: self.rec_start, codec.REC_ACT: self.rec_act, codec.CHECK: self.check,
+            codec.LAYOUT: self.layout,
         }
         while True:
             kind, body = self.chan.recv()
@@ -322,23 +326,28 @@ class Host:
 
     # ---- the hot path ----
 
-    def _frame(self, r: codec.Reader) -> dict[str, Any]:
+    def layout(self, body: memoryview) -> bytes:
+        self.frames.set_layout(body)
+        return b""
+
+    def _frame(self, r: codec.Reader) -> tuple[int, dict[str, Any]]:
         from services.harness.runtime.api import Frame
 
-        step, obs, action, milestones = codec.decode_frame(r)
+        step, obs, action, milestones = self.frames.decode(r)
         cache: dict[str, Any] = {}
         self.window.append(Frame(step, obs, action, milestones, self._sensor(step, cache)))
-        return cache
+        return step, cache
 
     def _sensor(self, step: int, cache: dict[str, Any]) -> Callable[[str], Any]:
         from services.harness.runtime.api import Detection
 
-        chan = self.chan
+        chan, asked = self.chan, self.asked
 
         def perceive(query: str) -> Any:
             if not isinstance(query, str):
                 raise TypeError("perceive takes a query string")
             if query in cache:
+                asked.add((step, query))
                 return cache[query]
             w = codec.Writer()
             w.i64(step)
@@ -349,6 +358,7 @@ class Host:
                 raise ValueError(codec.Reader(body).text())
             found = codec.decode_detections(codec.Reader(body), Detection)
             cache[query] = found
+            asked.add((step, query))
             return found
 
         return perceive
@@ -363,52 +373,55 @@ class Host:
         return Window(tuple(self.window), self.instruction, self.milestone_names)
 
     def step(self, body: memoryview) -> bytes:
-        from services.harness.runtime.api import Proposal
-
-        from services.harness.runtime.api import Detection
+        from services.harness.runtime.api import Detection, Proposal
+        from services.harness.runtime.perception import QUERIES
 
         r = codec.Reader(body)
-        cache = self._frame(r)
+        now, cache = self._frame(r)
         for _ in range(r.u32()):  # perception answers the host sent along
             query = r.text()
             cache[query] = codec.decode_detections(r, Detection)
         flat = r.u32s(2 * r.u32())
-        runs = list(zip(flat[::2], flat[1::2]))
         window = self._window()
+        asked = self.asked
+        asked.clear()
         w = codec.Writer()
-        w.u32(len(runs))
+        parts = w.parts
+        w.u32(len(flat) // 2)
+        pack = codec.RESULT.pack
         thread_time, perf = time.thread_time, time.perf_counter
-        for index, suspect in runs:
-            name, fn = self.critics[index]
-            w.u32(index)
-            self.mark(index)
-            clock = thread_time if suspect else perf
+        cell_index, cell_start, monotonic = self._cell_index, self._cell_start, time.monotonic
+        critics = self.critics
+        for k in range(0, len(flat), 2):
+            index = flat[k]
+            name, fn = critics[index]
+            cell_start[0] = monotonic()  # self.mark(index), inlined: the start first
+            cell_index[0] = index
+            clock = thread_time if flat[k + 1] else perf
             t0 = clock()
             try:
                 result = fn(window)
             except BaseException as exc:  # noqa: BLE001 - package code: that critic is switched off
                 elapsed = clock() - t0
-                self.unmark()
-                w.u32(codec.R_ERROR)
-                w.f64(elapsed)
+                cell_index[0] = -1
+                parts.append(pack(index, codec.R_ERROR, elapsed))
                 w.text(_describe(exc))
                 continue
             elapsed = clock() - t0
-            self.unmark()
+            cell_index[0] = -1
             if result is None:
-                w.u32(codec.R_NONE)
-                w.f64(elapsed)
+                parts.append(pack(index, codec.R_NONE, elapsed))
             elif isinstance(result, Proposal):
-                w.u32(codec.R_PROPOSAL)
-                w.f64(elapsed)
+                parts.append(pack(index, codec.R_PROPOSAL, elapsed))
                 try:
                     codec.encode_proposal(w, str(result.evidence), str(result.suggested_mode), dict(result.details))
                 except Exception as exc:  # noqa: BLE001 - details that are not numbers
                     return _error(f"critic {name}: proposal does not encode: {_describe(exc)}")
             else:
-                w.u32(codec.R_ERROR)
-                w.f64(elapsed)
+                parts.append(pack(index, codec.R_ERROR, elapsed))
                 w.text(f"returned {type(result).__name__}, not a Proposal or None")
+        # Which queries the critics asked of this frame: the host sends those along next step.
+        w.u32(sum(1 << i for i, q in enumerate(QUERIES) if (now, q) in asked))
         return w.message(codec.RESULTS)
 
     def rec_start(self, body: memoryview) -> bytes:

@@ -260,16 +260,24 @@ def _remove(path: str) -> None:
 # ---- one child ------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
 class CriticResult:
     """One critic call in the child: ``kind`` codec.R_NONE / R_PROPOSAL / R_ERROR, its elapsed
-    time (thread CPU when the host asked for it, else wall), and the proposal or the error."""
+    time (thread CPU when the host asked for it, else wall), and the proposal or the error.
+    (A plain class with slots: ten of them are built per env step.)"""
 
-    index: int
-    kind: int
-    elapsed_s: float
-    proposal: tuple[str, str, dict[str, float]] | None = None
-    error: str = ""
+    __slots__ = ("index", "kind", "elapsed_s", "proposal", "error")
+
+    def __init__(self, index: int, kind: int, elapsed_s: float,
+                 proposal: tuple[str, str, dict[str, float]] | None = None, error: str = "") -> None:
+        self.index = index
+        self.kind = kind
+        self.elapsed_s = elapsed_s
+        self.proposal = proposal
+        self.error = error
+
+    def __repr__(self) -> str:
+        return (f"CriticResult(index={self.index}, kind={self.kind}, elapsed_s={self.elapsed_s}, "
+                f"proposal={self.proposal!r}, error={self.error!r})")
 
 
 @dataclass(frozen=True)
@@ -292,6 +300,9 @@ class SandboxClient:
         self._finalizer = weakref.finalize(self, _kill, self.pid, self._pidfd)
         self._poll = select.poll()
         self._poll.register(self._sock.fileno(), select.POLLIN | select.POLLHUP | select.POLLERR)
+        self._frames = codec.FrameEncoder()
+        #: Bit i set: the critics asked perception query i (QUERIES) of the last frame.
+        self.asked = 0
         self._sock.settimeout(self.limits.load_timeout_s)
         self.dead = ""
         kind, r = self._call(b"", lambda i: self.limits.load_timeout_s, cap_s=self.limits.load_timeout_s)
@@ -407,8 +418,8 @@ class SandboxClient:
 
     def push(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str]) -> None:
         w = codec.Writer()
-        codec.encode_frame(w, step, obs, action, milestones)
-        self._send(w.message(codec.PUSH))
+        layout = self._frames.encode(w, step, obs, action, milestones)
+        self._send(layout + w.message(codec.PUSH))
 
     def _send(self, msg: bytes) -> None:
         if self.dead:
@@ -425,7 +436,7 @@ class SandboxClient:
         ``prefetched``: perception answers for this frame, sent along (a query the child asks
         that is not among them costs a round trip through ``perceive``)."""
         w = codec.Writer()
-        codec.encode_frame(w, step, obs, action, milestones)
+        layout = self._frames.encode(w, step, obs, action, milestones)
         w.u32(len(prefetched))
         for query, found in prefetched:
             w.text(query)
@@ -433,19 +444,22 @@ class SandboxClient:
         w.u32(len(runs))
         w.parts.append(struct.pack(f"<{2 * len(runs)}I", *(v for i, s in runs for v in (i, 1 if s else 0))))
         cap = sum(hard_limit(i) for i, _ in runs) + 2.0
-        kind, r = self._call(w.message(codec.STEP), hard_limit, cap, perceive)
+        kind, r = self._call(layout + w.message(codec.STEP), hard_limit, cap, perceive)
         if kind != codec.RESULTS:
             raise self._kill(-1, f"the sandbox broke the protocol: {_error_text(kind, r)}")
         try:
             out = []
             for _ in range(r.u32()):
-                index, rk, elapsed = r.u32(), r.u32(), r.f64()
-                if rk == codec.R_PROPOSAL:
+                index, rk, elapsed = r.result()
+                if rk == codec.R_NONE:
+                    out.append(CriticResult(index, rk, elapsed))
+                elif rk == codec.R_PROPOSAL:
                     out.append(CriticResult(index, rk, elapsed, codec.decode_proposal(r)))
                 elif rk == codec.R_ERROR:
                     out.append(CriticResult(index, rk, elapsed, error=r.text(4000)))
                 else:
-                    out.append(CriticResult(index, codec.R_NONE, elapsed))
+                    raise codec.WireError(f"result kind {rk}")
+            self.asked = r.u32()
             r.done()
         except codec.WireError as exc:
             raise self._kill(-1, f"the sandbox broke the protocol: {exc}") from None

@@ -2,6 +2,8 @@
 
 Every message is ``u32 length | u8 kind | payload``. Numbers are packed with :mod:`struct`,
 strings as ``u32 length | UTF-8``, numpy arrays as ``dtype string | ndim | shape | raw bytes``.
+A frame's observation is one block of raw bytes laid out as the last LAYOUT message said (names,
+dtypes, shapes: sent again only when they change, so a step carries no per-array headers).
 The parent never unpickles what a sandbox child sends (the child runs untrusted code): replies
 are decoded here, field by field, and anything malformed raises :class:`WireError`. The
 direction parent -> child carries only trusted data; its set-up messages (the package's files)
@@ -10,8 +12,9 @@ are pickled, the per-step messages are not.
 
 from __future__ import annotations
 
+import pickle
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -25,6 +28,7 @@ REC_START = 5   # start a package recovery: its mode, "<stem>:<factory>" and pic
 REC_ACT = 6     # the active package recovery's next action
 PERCEPT = 7     # the answer to a perception query
 CHECK = 8       # pickled files: load and build a runtime inside the sandbox (publish-time probe)
+LAYOUT = 9      # pickled [(name, dtype string, shape)]: how the observation blocks that follow are laid out
 # Child -> parent.
 READY = 20      # isolation report after start-up
 LOADED = 21     # critic names and module-level callables, or an error
@@ -44,6 +48,12 @@ _U32 = struct.Struct("<I")
 _HEAD = struct.Struct("<IB")
 _I64 = struct.Struct("<q")
 _F64 = struct.Struct("<d")
+#: One critic's result in RESULTS: its index, the result kind, its elapsed time.
+RESULT = struct.Struct("<IId")
+#: A frame's milestones are the previous frame's (sent in place of a count of strings).
+SAME_MILESTONES = 0xFFFFFFFF
+#: One detection on the wire: position (3) and box (6), float64.
+_DETECTION = 9
 
 
 class WireError(ValueError):
@@ -61,7 +71,8 @@ class Writer:
     __slots__ = ("parts",)
 
     def __init__(self) -> None:
-        self.parts: list[bytes | memoryview] = []
+        #: bytes-like parts (numpy arrays are written as their raw bytes, C-contiguous only).
+        self.parts: list[Any] = []
 
     def u32(self, v: int) -> None:
         self.parts.append(_U32.pack(v))
@@ -175,6 +186,15 @@ class Reader:
     def u32(self) -> int:
         return int(_U32.unpack_from(self.buf, self._at(4))[0])
 
+    def take(self, n: int) -> memoryview:
+        """The next ``n`` bytes."""
+        return self._take(n)
+
+    def result(self) -> tuple[int, int, float]:
+        """One critic result's head (:data:`RESULT`)."""
+        index, kind, elapsed = RESULT.unpack_from(self.buf, self._at(RESULT.size))
+        return index, kind, elapsed
+
     def u32s(self, n: int) -> tuple[int, ...]:
         """``n`` u32 values at once."""
         if n < 0 or n > 1 << 20:
@@ -235,24 +255,82 @@ class Reader:
             raise WireError(f"{len(self.buf) - self.pos} bytes left over")
 
 
-def encode_frame(w: Writer, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
-                 milestones: Iterable[str]) -> None:
-    """A trajectory frame (what critics read): step, observation, action, milestones."""
-    w.i64(step)
-    w.arrays(obs)
-    if action is None:
-        w.u32(0)
-    else:
-        w.u32(1)
-        w.array(np.asarray(action))
-    w.texts(sorted(milestones))
+class FrameEncoder:
+    """Encodes frames for one child (host side): the observation as one block of raw bytes, its
+    layout in a LAYOUT message only when it changed, the milestones only when they changed."""
+
+    __slots__ = ("_key", "_milestones")
+
+    def __init__(self) -> None:
+        self._key: Any = None
+        self._milestones: frozenset[str] | None = None
+
+    def encode(self, w: Writer, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
+               milestones: frozenset[str]) -> bytes:
+        """Writes the frame into ``w``; returns the LAYOUT message to send before it (b"" when the
+        child knows the layout already)."""
+        arrays = [v if type(v) is np.ndarray and v.flags.c_contiguous else _contiguous(np.asarray(v))
+                  for v in obs.values()]
+        key = (tuple(obs), [(a.dtype, a.shape) for a in arrays])
+        layout = b""
+        if key != self._key:
+            if any(a.dtype.hasobject for a in arrays):
+                raise ValueError("object arrays cannot go to the sandbox")
+            self._key = key
+            layout = frame(LAYOUT, pickle.dumps([(n, a.dtype.str, a.shape) for n, a in zip(key[0], arrays)]))
+        parts = w.parts
+        parts.append(_I64.pack(step))
+        parts.append(_U32.pack(sum(a.nbytes for a in arrays)))
+        parts.extend(arrays)
+        if action is None:
+            parts.append(_U32.pack(0))
+        else:
+            parts.append(_U32.pack(1))
+            w.array(np.asarray(action))
+        if milestones == self._milestones:
+            parts.append(_U32.pack(SAME_MILESTONES))
+        else:
+            self._milestones = milestones
+            w.texts(sorted(milestones))
+        return layout
 
 
-def decode_frame(r: Reader) -> tuple[int, dict[str, np.ndarray], np.ndarray | None, frozenset[str]]:
-    step = r.i64()
-    obs = r.arrays()
-    action = r.array() if r.u32() else None
-    return step, obs, action, frozenset(r.texts())
+class FrameDecoder:
+    """The inverse of :class:`FrameEncoder` (child side). The layout comes from the host (trusted);
+    every read is still bounds-checked."""
+
+    __slots__ = ("_layout", "_nbytes", "_milestones")
+
+    def __init__(self) -> None:
+        self._layout: list[tuple[str, np.dtype[Any], int, int, tuple[int, ...]]] = []
+        self._nbytes = 0
+        self._milestones: frozenset[str] = frozenset()
+
+    def set_layout(self, body: bytes | memoryview) -> None:
+        layout, offset = [], 0
+        for name, dt, shape in pickle.loads(body):
+            dtype = np.dtype(dt)
+            count = 1
+            for d in shape:
+                count *= d
+            layout.append((name, dtype, offset, count, tuple(shape)))
+            offset += count * dtype.itemsize
+        self._layout, self._nbytes = layout, offset
+
+    def decode(self, r: Reader) -> tuple[int, dict[str, np.ndarray], np.ndarray | None, frozenset[str]]:
+        step = r.i64()
+        n = r.u32()
+        if n != self._nbytes:
+            raise WireError(f"observation of {n} bytes, its layout says {self._nbytes}")
+        block = r.take(n)
+        frombuffer = np.frombuffer
+        obs = {name: frombuffer(block, dt, count, off).reshape(shape) for name, dt, off, count, shape in self._layout}
+        action = r.array() if r.u32() else None
+        n = r.u32()
+        if n != SAME_MILESTONES:
+            r.pos -= 4
+            self._milestones = frozenset(r.texts())
+        return step, obs, action, self._milestones
 
 
 # Per-critic result kinds in RESULTS.
@@ -284,27 +362,36 @@ def pack_detections(found: Any) -> bytes:
 
 
 def encode_detections(w: Writer, found: Any) -> None:
-    """A perception answer: -1 for None, -2 then one box for a single Detection, else a list."""
+    """A perception answer: -1 for None, -2 then one detection for a single Detection, else the
+    count; each detection as 9 float64 (position, box)."""
     if found is None:
         w.i64(-1)
     elif isinstance(found, list):
         w.i64(len(found))
-        for d in found:
-            w.array(np.asarray(d.pos, dtype=np.float64))
-            w.array(np.asarray(d.box, dtype=np.float64))
+        if found:
+            w.parts.append(np.stack([_detection(d) for d in found]).tobytes())
     else:
         w.i64(-2)
-        w.array(np.asarray(found.pos, dtype=np.float64))
-        w.array(np.asarray(found.box, dtype=np.float64))
+        w.parts.append(_detection(found).tobytes())
+
+
+def _detection(d: Any) -> np.ndarray:
+    a = np.concatenate((np.ravel(d.pos), np.ravel(d.box)), dtype=np.float64)
+    if a.shape != (_DETECTION,):
+        raise ValueError(f"a detection is a position (3) and a box (6), got {a.shape[0]} numbers")
+    return a
 
 
 def decode_detections(r: Reader, detection: Any) -> Any:
-    """The inverse of :func:`encode_detections`; ``detection`` builds one (api.Detection)."""
+    """The inverse of :func:`encode_detections`; ``detection`` builds one (api.Detection). The
+    arrays are writable copies, as in-process."""
     n = r.i64()
     if n == -1:
         return None
     if n == -2:
-        return detection(r.array(copy=True), r.array(copy=True))
+        a = np.frombuffer(r.take(8 * _DETECTION), np.float64).copy()
+        return detection(a[:3], a[3:])
     if n < 0 or n > 4096:
         raise WireError(f"{n} detections")
-    return [detection(r.array(copy=True), r.array(copy=True)) for _ in range(n)]
+    rows = np.frombuffer(r.take(8 * _DETECTION * n), np.float64).reshape(n, _DETECTION).copy()
+    return [detection(row[:3], row[3:]) for row in rows]

@@ -23,6 +23,10 @@ from services.harness.sandbox.client import CallFailed, CriticResult, Loaded, Sa
 
 log = logging.getLogger("zetta.harness.sandbox")
 
+#: A perception query is answered along with each frame until the critics have not asked it of
+#: this many frames in a row (then it costs a round trip when asked, which starts it again).
+PREFETCH_STEPS = 8
+
 
 class SandboxedCode:
     """The package code of one runtime, in its own sandbox child."""
@@ -37,8 +41,9 @@ class SandboxedCode:
         self._client: SandboxClient | None = None
         self._episode: tuple[str, tuple[str, ...]] = ("", ())
         self.respawns = 0
-        #: Perception queries the package's critics asked, answered with every frame from then on.
-        self._queries: list[str] = []
+        #: Per perception query (QUERIES), how many steps ago the critics last asked it of the
+        #: newest frame: answered along with the frame while under PREFETCH_STEPS.
+        self._unasked = [PREFETCH_STEPS] * len(QUERIES)
         loaded = self._spawn()
         self.critics = loaded.critics
         self.callables = loaded.callables
@@ -97,19 +102,15 @@ class SandboxedCode:
         """Send the newest frame of ``frames`` and run the critics ``runs`` ((index, timed in CPU))."""
         client = self._live(frames)
         f = frames[-1]
-        # The queries the critics asked before are answered along with the frame (one round trip
-        # per step, not one per query); a new query costs one round trip and is learned.
-        prefetched = [(q, f.perceive(q)) for q in self._queries]
-        served = _perceiver(frames)
-        learned = self._queries
-
-        def perceive(step: int, query: str) -> Any:
-            found = served(step, query)
-            if step == f.step and query in QUERIES and query not in learned:
-                learned.append(query)
-            return found
-
-        return client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, perceive, prefetched)
+        # The queries the critics asked of recent frames are answered along with the frame (one
+        # round trip per step, not one per query); any other query costs a round trip when asked.
+        unasked = self._unasked
+        prefetched = [(q, f.perceive(q)) for i, q in enumerate(QUERIES) if unasked[i] < PREFETCH_STEPS]
+        results = client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, _perceiver(frames), prefetched)
+        asked = client.asked
+        for i in range(len(unasked)):
+            unasked[i] = 0 if asked >> i & 1 else unasked[i] + 1
+        return results
 
     def recovery(self, ref: str, params: Mapping[str, Any], hard_limit_s: float,
                  frames: Callable[[], Sequence[Frame]]) -> "RemoteRecovery":
