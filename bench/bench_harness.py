@@ -68,7 +68,14 @@ def write_package(root: Path) -> Path:
 
 def child_cpu_s(pid: int) -> float:
     """CPU seconds a process (the sandbox child) has run, from /proc/PID/schedstat (ns)."""
-    return int(Path(f"/proc/{pid}/schedstat").read_text().split()[0]) / 1e9
+    return child_sched_s(pid)[0]
+
+
+def child_sched_s(pid: int) -> tuple[float, float]:
+    """Seconds a process has run and has waited on a run queue (runnable, no core free for it),
+    from /proc/PID/schedstat (ns)."""
+    ran, waited = Path(f"/proc/{pid}/schedstat").read_text().split()[:2]
+    return int(ran) / 1e9, int(waited) / 1e9
 
 
 class _Hist:
@@ -154,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     keys = ("env_wall", "env_cpu", "h_wall", "h_cpu")
     times = {m: {k: [] for k in keys} for m in MODES}
     child_cpu: list[float] = []
+    child_wait: list[float] = []
     loop = {m: [] for m in ("plain", *MODES)}
     for ep in range(a.episodes):
         spec = ResetSpec(task=a.task, seed=ep, init_state_index=ep % 50)
@@ -164,10 +172,12 @@ def main(argv: list[str] | None = None) -> int:
             harness = harnesses[mode]
             obs, instruction = slot.reset(spec)
             harness.reset(obs, instruction, slot.milestone_names())
-            c0 = child_cpu_s(sandbox.pid) if mode == "sandboxed" else 0.0
+            c0, w0 = child_sched_s(sandbox.pid) if mode == "sandboxed" else (0.0, 0.0)
             t, per = run_harnessed(slot, policy, obs, a.steps, harness)
             if mode == "sandboxed":
-                child_cpu.append((child_cpu_s(sandbox.pid) - c0) / max(1, len(t["h_wall"])))
+                c1, w1 = child_sched_s(sandbox.pid)
+                child_cpu.append((c1 - c0) / max(1, len(t["h_wall"])))
+                child_wait.append((w1 - w0) / max(1, len(t["h_wall"])))
             for k, v in t.items():
                 times[mode][k] += v
             loop[mode].append(per)
@@ -192,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     row("loop per step, median (ms)", [f"{statistics.median(loop[m]) * 1e3:.3f}" for m in MODES])
     print(f"plain loop per step, median: {statistics.median(loop['plain']) * 1e3:.3f} ms (scripted policy included); "
           f"sandbox child CPU per step: {child * 1e3:.3f} ms (in the sandboxed CPU column); target: harness < 5% of an env step")
+    print(f"sandbox child waiting for a core (runnable, not running) per step: {statistics.median(child_wait) * 1e3:.3f} ms "
+          "(mean per episode, median over episodes; part of the sandboxed wall column)")
     for h in harnesses.values():
         h.close()
     slot.close()
