@@ -11,7 +11,8 @@ but never take control and every run executes the same actions. Printed per mode
 time, median harness time per step (critics, window, bookkeeping and, sandboxed, the round trip to
 the child) and their ratio, episodes alternated so machine load hits all modes alike. Wall and CPU
 times are both printed; the sandboxed CPU time adds the child's CPU (from /proc) to the host
-thread's. Target: harness < 5% of the env step, sandboxed included.
+thread's, and how long the child waited for a core (runnable, not running) is printed apart: on a
+loaded machine it is most of the sandboxed wall time. Target: harness < 5% of the env step, sandboxed included.
 
     python bench/bench_harness.py [--episodes 4] [--steps 150] [--suite libero_goal] [--task 6]
 """

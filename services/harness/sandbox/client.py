@@ -18,9 +18,10 @@ dies. When the host is not root or the kernel refuses a namespace, the child run
 says so (:attr:`SandboxClient.isolation`, the ``zetta_harness_sandbox_isolation`` gauge, a
 warning in the log).
 
-Per step the host sends the new frame (numpy arrays as dtype, shape and raw bytes over a Unix
-socket; services/harness/sandbox/codec.py) and the indices of the critics to run; the child keeps
-the window. A call is timed by the host through a shared cell the child writes before and after
+Per step the host sends the new frame (the observation's arrays as one block of raw bytes, laid
+out by a LAYOUT message sent only when names, dtypes or shapes change, over a Unix socket;
+services/harness/sandbox/codec.py) and the indices of the critics to run; the child keeps the
+window. A call is timed by the host through a shared cell the child writes before and after
 each call: a call still running at the platform's hard limit gets the child SIGKILLed; the next
 call respawns it and restores the window, the critic that overran stays switched off for the
 episode. Waiting on the socket releases the GIL: heartbeats and other slots run meanwhile.
