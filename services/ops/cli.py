@@ -164,7 +164,7 @@ def run_chosen_demo(args: argparse.Namespace, address: str, metrics_urls: Sequen
         return
     from services.ops.mission_demo import MissionSpec, run_mission, summary
 
-    spec = MissionSpec(model=args.model, execute_steps=args.execute_steps, seeds=tuple(range(args.episodes or 10)))
+    spec = MissionSpec(model=args.model, execute_steps=args.execute_steps, seeds=tuple(range(30, 30 + (args.episodes or 10))))
     spec.suite, spec.task = args.suite or spec.suite, args.task or spec.task
     if args.harness:
         spec.harness_dir = Path(args.harness)
@@ -247,7 +247,7 @@ def cmd_sessions(args: argparse.Namespace) -> int:
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=0,
                    help="mission: seeds per condition (default 10); throughput: concurrent episodes (default 16)")
-    p.add_argument("--suite", default="", help="LIBERO suite (mission: libero_goal_swap; throughput: libero_goal)")
+    p.add_argument("--suite", default="", help="LIBERO suite (mission: libero_goal_lan; throughput: libero_goal)")
     p.add_argument("--task", default="", help=f"task name or index (default {DEFAULT_TASK})")
     p.add_argument("--harness", default="", help="mission: harness package directory "
                    "(default examples/harnesses/libero-goal-pick-place)")

@@ -24,7 +24,7 @@ async def test_three_conditions_on_the_same_seed_and_a_report(stack_factory, tmp
         assert (cond.episodes[0].harness_report is None) == (name == "bare")
     doc = json.loads(res.report_path.read_text())
     assert [r["condition"] for r in doc["episodes"]] == list(CONDITIONS)
-    assert {r["seed"] for r in doc["episodes"]} == {3} and doc["suite"] == "libero_goal_swap"
+    assert {r["seed"] for r in doc["episodes"]} == {3} and doc["suite"] == "libero_goal_lan"
     expected = hashlib.sha256((default_checkpoint() / "model.pt").read_bytes()).hexdigest()
     assert doc["checkpoint_sha256"] == expected and len(doc["harness_content_hash"]) == 64
     text = summary(doc, res.report_path)
