@@ -1,6 +1,6 @@
 """Rebuild the README's `make demo` output from the published demo report.
 
-    zetta up --demo && cp out/demo/report.json docs/results/demo.json
+    zetta up --demo && python scripts/gen_results.py demo --from out/demo/report.json
     .venv/bin/python scripts/gen_readme_demo.py        # rewrites the block between the markers
 """
 

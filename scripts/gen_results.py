@@ -34,6 +34,7 @@ TOPICS: dict[str, tuple[str, str]] = {
     "bench-rollout": ("bench.bench_rollout", "page"),
     "oracle": ("scripts/oracle_report.py", "page"),
     "harness": ("scripts/eval_harness.py", "page"),
+    "demo": ("services.ops.mission_demo", "page"),
 }
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from services.common.policies import DEFAULT_POLICY, checkpoint_dir, policy_env_config
+from services.common.provenance import page_header, provenance
 from services.harness.package import format as package_format
 from zetta.client import EpisodeSummary, Gateway, SessionGroup, ZettaError
 from zetta.credentials import ClientCredentials
@@ -145,14 +145,6 @@ def _checkpoint_sha(model: str) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None and path.exists() else ""
 
 
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return ""
-    return out.stdout.strip() if out.returncode == 0 else ""
-
-
 def _relative(path: str) -> str:
     """``path`` relative to the working directory when it lies below it (what a README can show)."""
     if not path:
@@ -189,8 +181,7 @@ def report_doc(res: MissionResult) -> dict[str, Any]:
              f"--suite {spec.suite}" if spec.suite != default.suite else "",
              f"--task {spec.task}" if spec.task != default.task else "",
              f"--harness {spec.harness_dir}" if Path(spec.harness_dir) != default.harness_dir else ""]
-    return {"command": " ".join(["zetta up --demo", *filter(None, flags)]),
-            "commit": _commit(), "suite": spec.suite, "task": spec.task, "seeds": list(spec.seeds),
+    return {**provenance(" ".join(["zetta up --demo", *filter(None, flags)]), ROOT), "suite": spec.suite, "task": spec.task, "seeds": list(spec.seeds),
             "model": spec.model, "checkpoint_sha256": _checkpoint_sha(spec.model),
             "harness": Path(spec.harness_dir).name, "harness_content_hash": package_format.content_hash(harness_files),
             "execute_steps": spec.execute_steps, "wall_s": round(res.wall_s, 1), "video": _relative(res.video),
@@ -249,3 +240,16 @@ def summary(doc: dict[str, Any], report_path: Path | str = "") -> str:
         lines.append("video: no episode was recovered by the harness on these seeds")
     lines.append(f"wall time {doc['wall_s']:.0f} s")
     return "\n".join(lines)
+
+
+def page(doc: dict[str, Any]) -> str:
+    """docs/results/demo.md: the printed summary and every episode of the published run."""
+    lines = [page_header("demo", "make demo: a frozen policy, the same policy under a harness, the control", doc), "",
+             "```", summary(doc, "out/demo/report.json"), "```", "",
+             "| condition | seed | init state | success | steps | policy actions | recovery actions | interventions (kind: outcome) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in doc["episodes"]:
+        fired = ", ".join(f"{i['kind']}: {i['outcome']}" for i in r["interventions"]) or "-"
+        lines.append(f"| {r['condition']} | {r['seed']} | {r['init_state_index']} | {'yes' if r['success'] else 'no'} | "
+                     f"{r['steps']} | {r['policy_actions']} | {r['recovery_actions']} | {fired} |")
+    return "\n".join(lines) + "\n"
