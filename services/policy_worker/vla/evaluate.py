@@ -200,6 +200,8 @@ def main(argv=None) -> int:
         from services.policy_worker.vla.results import write_results
 
         checkpoint = a.checkpoint or str(checkpoint_dir(a.model))
+        if Path(checkpoint).resolve().is_relative_to(Path.cwd().resolve()):
+            checkpoint = str(Path(checkpoint).resolve().relative_to(Path.cwd().resolve()))
         write_results(a.results, rows, model=a.model, checkpoint=checkpoint, execute_steps=a.execute_steps,
                       command=["zetta", "eval-policy", *(argv if argv is not None else sys.argv[1:])],
                       wall_s=time.monotonic() - start)

@@ -88,7 +88,8 @@ def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint:
         "model": model, "checkpoint": str(checkpoint), "checkpoint_sha256": checkpoint_hash(checkpoint),
         "commit": git_commit(), "command": " ".join(command), "execute_steps": execute_steps,
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": f"{platform.machine()}, "
-        f"{_cpus()} CPUs", "wall_s": round(wall_s, 1), "training_init_states": trained, "suites": suites,
+        f"{_cpus()} CPUs", "wall_s": round(wall_s, 1),
+        "episode_s": round(sum(float(r.get("seconds", 0.0)) for r in rows), 1), "training_init_states": trained, "suites": suites,
     }
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(doc, indent=1) + "\n")
@@ -114,7 +115,9 @@ def render(doc: dict) -> str:
         "`python -m services.policy_worker.vla.results`; do not edit by hand.",
         "",
         f"- model `{doc['model']}`, checkpoint `{doc['checkpoint']}` (model.pt sha256 `{doc['checkpoint_sha256'][:16]}...`)",
-        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, evaluation time about {doc['wall_s'] / 60:.0f} min",
+        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, "
+        + (f"episodes ran {doc['episode_s'] / 60:.0f} process-minutes in all" if "episode_s" in doc
+           else f"evaluation time about {doc['wall_s'] / 60:.0f} min"),
         f"- command: `{doc['command']}`",
         f"- {doc['execute_steps']} actions of each 8-action chunk run per policy call",
         f"- the checkpoint was trained on init states {_ranges(doc['training_init_states'].get('libero_goal', []))} "
