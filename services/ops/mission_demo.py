@@ -84,6 +84,9 @@ class MissionResult:
     wall_s: float
     video: str = ""
     video_seed: int | None = None
+    #: Whether the recorded replay of that seed was itself a recovered success (the rollout is replayed,
+    #: not the same bytes: without batch-invariant serving it can differ).
+    video_recovered: bool | None = None
     report_path: Path | None = None
 
 
@@ -114,7 +117,7 @@ async def run_mission(address: str, spec: MissionSpec, log: Any = print,
     harness_dir = str(Path(spec.harness_dir).resolve())
     t0 = time.perf_counter()
     results: dict[str, ConditionResult] = {}
-    video, video_seed = "", None
+    video, video_seed, replay_recovered = "", None, None
     async with Gateway(address, **(credentials or ClientCredentials()).gateway_kwargs()) as gw:
         group = await gw.create_sessions(env_family="libero", n=len(spec.seeds),
                                          env_config={"suite": spec.suite, "task": spec.task,
@@ -131,10 +134,10 @@ async def run_mission(address: str, spec: MissionSpec, log: Any = print,
             if pick is not None:
                 replay = await _episodes(group.subset(group.ids[:1]), spec, [pick], spec.model, harness_dir,
                                          record_video=True)
-                video, video_seed = replay[0].video_path, pick
+                video, video_seed, replay_recovered = replay[0].video_path, pick, recovered(replay[0])
         finally:
             await group.close()
-    res = MissionResult(spec, results, time.perf_counter() - t0, video, video_seed)
+    res = MissionResult(spec, results, time.perf_counter() - t0, video, video_seed, replay_recovered)
     res.report_path = write_report(res)
     return res
 
@@ -185,7 +188,7 @@ def report_doc(res: MissionResult) -> dict[str, Any]:
             "model": spec.model, "checkpoint_sha256": _checkpoint_sha(spec.model),
             "harness": Path(spec.harness_dir).name, "harness_content_hash": package_format.content_hash(harness_files),
             "execute_steps": spec.execute_steps, "wall_s": round(res.wall_s, 1), "video": _relative(res.video),
-            "video_seed": res.video_seed, "episodes": rows}
+            "video_seed": res.video_seed, "video_recovered": res.video_recovered, "episodes": rows}
 
 
 def write_report(res: MissionResult) -> Path:
@@ -235,7 +238,9 @@ def summary(doc: dict[str, Any], report_path: Path | str = "") -> str:
     if report_path:
         lines.append(f"report (every episode, its interventions): {report_path}")
     if doc.get("video"):
-        lines.append(f"video of a recovered episode (seed {doc['video_seed']}): {doc['video']}")
+        again = {True: "", False: " (the replay differs from the run: it was not a recovered success)"}.get(
+            doc.get("video_recovered"), "")
+        lines.append(f"video of a recovered episode (seed {doc['video_seed']}): {doc['video']}{again}")
     else:
         lines.append("video: no episode was recovered by the harness on these seeds")
     lines.append(f"wall time {doc['wall_s']:.0f} s")
