@@ -490,6 +490,13 @@ def child_main(chan_fd: int, cell_fd: int, spec: bytes, network_degraded: str) -
 
 def zygote_main(ctrl_fd: int) -> None:
     """Fork a child per request on the control socket; exit when the host closes it."""
+    try:
+        _zygote_loop(ctrl_fd)
+    except (BrokenPipeError, ConnectionResetError):
+        os._exit(0)  # the host went away (it stopped, or refused its configuration): nothing to report
+
+
+def _zygote_loop(ctrl_fd: int) -> None:
     _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     ctrl = socket.socket(fileno=ctrl_fd)
     _preload()
