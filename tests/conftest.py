@@ -72,7 +72,9 @@ def _failed(request: pytest.FixtureRequest) -> bool:
 @pytest.fixture(scope="session")
 def shared_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
     """One healthy stack for every test that does not kill or restart a process."""
-    stack = new_stack(workdir=tmp_path_factory.mktemp("shared-stack"))
+    # A looser heartbeat budget than the private stacks': nothing kills this stack's workers, and a
+    # worker building LIBERO scenes on a busy 2-core machine can miss a 2 s budget (every session LOST).
+    stack = new_stack(workdir=tmp_path_factory.mktemp("shared-stack"), heartbeat_timeout_ms=8000)
     stack.start()
     try:
         yield stack
