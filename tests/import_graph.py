@@ -11,6 +11,7 @@ A module's package ``__init__`` runs before it, so importing ``a.b.c`` also coun
 from __future__ import annotations
 
 import ast
+import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,11 +95,31 @@ def _targets(node: ast.Import | ast.ImportFrom, source: str, is_package: bool, m
     return [t for t in (_resolve(n, modules) for n in names) if t is not None]
 
 
+def parse(source: str, filename: str) -> ast.Module:
+    """ast.parse on a fresh thread: in a long test process CPython 3.11.7's AST validator can raise a
+    spurious SystemError ("AST constructor recursion depth mismatch") on a thread whose recursion
+    bookkeeping earlier calls left off; a new thread starts from zero."""
+    out: list[ast.Module | BaseException] = []
+
+    def run() -> None:
+        try:
+            out.append(ast.parse(source, filename=filename))
+        except BaseException as exc:  # noqa: BLE001 - re-raised on the caller's thread below
+            out.append(exc)
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    worker.join()
+    if isinstance(out[0], BaseException):
+        raise out[0]
+    return out[0]
+
+
 def imports_of(modules: Mapping[str, Path]) -> list[Import]:
     """Every import between modules of the tree."""
     out: list[Import] = []
     for name, path in modules.items():
-        tree = ast.parse(path.read_text(), filename=str(path))
+        tree = parse(path.read_text(), str(path))
         for node in ast.walk(tree):
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 for target in _targets(node, name, path.name == "__init__.py", modules):

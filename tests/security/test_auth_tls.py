@@ -130,7 +130,8 @@ async def test_tls_stack_runs_an_episode(stack_factory: Callable[..., LocalStack
     """Every service on TLS (mutual between services): an SDK client with the CA runs an episode;
     a plaintext client gets nowhere, and an env worker refuses a TLS client without a certificate."""
     tls = make_certs(tmp_path / "certs")
-    stack = stack_factory(env_workers=1, extra_env=tls)
+    # Not a liveness test: a loose heartbeat budget, so a busy machine cannot LOST its one session.
+    stack = stack_factory(env_workers=1, extra_env=tls, heartbeat_timeout_ms=8000)
     async with Gateway(stack.gateway_address, tls_ca=tls["ZETTA_TLS_CA"]) as gw:
         group = await gw.create_sessions("libero", n=1, env_config={
             "suite": "libero_goal", "task": "put_the_cream_cheese_in_the_bowl"})
