@@ -52,6 +52,25 @@ def test_results_refuse_init_states_the_checkpoint_trained_on(tmp_path) -> None:
     assert "| libero_goal | 1/40 | 2% |" in page and "init states 0-29" in page and "30-49" in page
 
 
+def test_a_run_keeps_suites_measured_on_the_same_weights_and_drops_others(tmp_path) -> None:
+    ck, out = _checkpoint(tmp_path), tmp_path / "r.json"
+    common = {"model": "m", "checkpoint": ck, "execute_steps": 4, "wall_s": 1.0}
+    write_results(out, _rows("libero_goal", range(30, 50), set()), command=["first"], **common)
+    doc = write_results(out, _rows("libero_goal_lan", range(30, 50), {(0, 30)}), command=["second"], **common)
+    assert list(doc["suites"]) == ["libero_goal", "libero_goal_lan"]
+    assert [(r["command"], r["suites"]) for r in doc["runs"]] == [("second", ["libero_goal_lan"]),
+                                                                   ("first", ["libero_goal"])]
+    page = render(doc)
+    assert "- libero_goal_lan: `second`" in page and "- libero_goal: `first`" in page
+    doc = write_results(out, _rows("libero_goal", range(30, 50), {(0, 31)}), command=["third"], **common)
+    assert doc["suites"]["libero_goal"]["total"]["successes"] == 1 and len(doc["runs"]) == 2
+    (ck / "model.pt").write_bytes(b"other weights")
+    doc = write_results(out, _rows("libero_goal_swap", range(30, 50), set()), command=["fourth"], **common)
+    assert list(doc["suites"]) == ["libero_goal_swap"] and len(doc["runs"]) == 1
+    doc = write_results(out, _rows("libero_goal", range(30, 50), set()), command=["fifth"], **{**common, "execute_steps": 2})
+    assert list(doc["suites"]) == ["libero_goal"]
+
+
 def test_ranges() -> None:
     assert _ranges([0, 1, 2, 5, 7, 8]) == "0-2, 5, 7-8" and _ranges([]) == "none"
 

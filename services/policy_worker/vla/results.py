@@ -75,7 +75,12 @@ def summarize(rows: list[dict]) -> dict[str, dict[str, Any]]:
 
 def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint: str | Path, execute_steps: int,
                   command: list[str], wall_s: float) -> dict:
-    """Write the results file; refuses when an evaluated init state is one the checkpoint trained on."""
+    """Write the results file; refuses when an evaluated init state is one the checkpoint trained on.
+
+    Suites this run did not evaluate are kept from the existing file when it measured the same
+    weights (checkpoint sha256), model and execute_steps, each with the run that measured it, so one
+    page can grow suite by suite; figures of other weights are dropped, never mixed in.
+    """
     trained = training_init_states(checkpoint)
     suites = summarize(rows)
     for name, s in suites.items():
@@ -84,16 +89,43 @@ def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint:
         if overlap:
             raise ValueError(f"{name}: init states {overlap} were in the checkpoint's training data; "
                              f"evaluate on others (--seed-offset)")
+    sha = checkpoint_hash(checkpoint)
+    run = {"command": " ".join(command), "commit": git_commit(),
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+           "machine": f"{platform.machine()}, {_cpus()} CPUs", "wall_s": round(wall_s, 1),
+           "episode_s": round(sum(float(r.get("seconds", 0.0)) for r in rows), 1), "suites": sorted(suites)}
+    runs = [run]
+    merged = dict(suites)
+    old = _previous(Path(path))
+    if old and (old.get("checkpoint_sha256"), old.get("model"), old.get("execute_steps")) == (sha, model, execute_steps):
+        for old_run in _runs(old):
+            kept = [n for n in old_run["suites"] if n not in suites and n in old["suites"]]
+            if kept:
+                runs.append({**old_run, "suites": kept})
+                merged.update({n: old["suites"][n] for n in kept})
+    merged = {n: merged[n] for n in sorted(merged, key=lambda n: (n.count("_"), n))}  # libero_goal first
     doc = {
-        "model": model, "checkpoint": str(checkpoint), "checkpoint_sha256": checkpoint_hash(checkpoint),
-        "commit": git_commit(), "command": " ".join(command), "execute_steps": execute_steps,
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": f"{platform.machine()}, "
-        f"{_cpus()} CPUs", "wall_s": round(wall_s, 1),
-        "episode_s": round(sum(float(r.get("seconds", 0.0)) for r in rows), 1), "training_init_states": trained, "suites": suites,
+        "model": model, "checkpoint": str(checkpoint), "checkpoint_sha256": sha, **{k: run[k] for k in run if k != "suites"},
+        "execute_steps": execute_steps, "training_init_states": trained, "runs": runs, "suites": merged,
     }
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(doc, indent=1) + "\n")
     return doc
+
+
+def _previous(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _runs(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """The runs behind a results file (a file written before runs were listed is one run)."""
+    if "runs" in doc:
+        return list(doc["runs"])
+    keys = ("command", "commit", "date", "machine", "wall_s", "episode_s")
+    return [{**{k: doc[k] for k in keys if k in doc}, "suites": sorted(doc.get("suites", {}))}]
 
 
 def _cpus() -> int:
@@ -115,10 +147,15 @@ def render(doc: dict) -> str:
         "`python -m services.policy_worker.vla.results`; do not edit by hand.",
         "",
         f"- model `{doc['model']}`, checkpoint `{doc['checkpoint']}` (model.pt sha256 `{doc['checkpoint_sha256'][:16]}...`)",
-        f"- commit `{doc['commit']}`, {doc['date']}, {doc['machine']}, "
-        + (f"episodes ran {doc['episode_s'] / 60:.0f} process-minutes in all" if "episode_s" in doc
-           else f"evaluation time about {doc['wall_s'] / 60:.0f} min"),
-        f"- command: `{doc['command']}`",
+    ]
+    for run in _runs(doc):
+        lines += [
+            f"- {', '.join(run['suites'])}: `{run['command']}`",
+            f"  (commit `{run['commit']}`, {run['date']}, {run.get('machine', '')}, "
+            + (f"episodes ran {run['episode_s'] / 60:.0f} process-minutes in all)" if "episode_s" in run
+               else f"evaluation time about {run['wall_s'] / 60:.0f} min)"),
+        ]
+    lines += [
         f"- {doc['execute_steps']} actions of each 8-action chunk run per policy call",
         f"- the checkpoint was trained on init states {_ranges(doc['training_init_states'].get('libero_goal', []))} "
         "of libero_goal (original tasks only); every episode below starts from another",
