@@ -10,9 +10,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS
 from services.common.progress import add_progress_option
+from services.evolver.cluster import ClusterParams
+from services.evolver.eod import EODParams
+from services.evolver.evolve import EvolveConfig
+from services.evolver.gate import GateParams
 from services.evolver.llm import LLMConfig, LLMError, config_from_env
+from services.evolver.repair import SearchParams
 from services.evolver.rollout import RunConfig
 
 
@@ -25,12 +30,45 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
     p.add_argument("--model", default=DEFAULT_POLICY, help=f"the frozen policy (default {DEFAULT_POLICY})")
-    p.add_argument("--execute-steps", type=int, default=2, help="actions of each chunk executed per policy call")
+    p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
+                   help=f"actions of each chunk executed per policy call (default {EXECUTE_STEPS}, the VLA's own)")
     p.add_argument("--max-steps", type=int, default=0, help="episode budget (default: the suite's)")
     p.add_argument("--concurrency", type=int, default=2, help="episodes in flight")
     p.add_argument("--env-workers", type=int, default=2, help="env workers of the local stack")
     p.add_argument("--video", action="store_true", help="record every rollout's video (slower: renders each step)")
     add_progress_option(p)
+
+
+def add_search_args(p: argparse.ArgumentParser) -> None:
+    """The loops' budgets and thresholds, shared by `zetta evolve` and `zetta evolve experiment`."""
+    p.add_argument("--rounds", type=int, default=1)
+    p.add_argument("--dev-seeds", type=int, default=EvolveConfig.dev_seeds, help="repair seeds per task")
+    p.add_argument("--heldout-seeds", type=int, default=EvolveConfig.heldout_seeds,
+                   help="gate (admission) seeds per task")
+    p.add_argument("--test-seeds", type=int, default=EvolveConfig.test_seeds,
+                   help="seeds of the reported number per task (dev + held-out + test <= 50 initial states)")
+    p.add_argument("--max-clusters", type=int, default=EvolveConfig.max_clusters,
+                   help="clusters repaired per task and round, largest first")
+    p.add_argument("--max-candidates", type=int, default=SearchParams.max_candidates,
+                   help="candidate patches validated per cluster and depth")
+    p.add_argument("--max-depth", type=int, default=EvolveConfig.max_depth,
+                   help="internal versions stacked per cluster until one solves every cluster seed")
+    p.add_argument("--regression-min", type=float, default=1.0,
+                   help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
+    p.add_argument("--eod-epsilon", type=float, default=EODParams().epsilon)
+    p.add_argument("--cluster-radius", type=float, default=ClusterParams().radius)
+    p.add_argument("--cluster-max-size", type=int, default=ClusterParams().max_size,
+                   help="most failures per cluster (0: no limit)")
+
+
+def evolve_config(a: argparse.Namespace, suite: str, tasks: tuple[str, ...], name: str) -> EvolveConfig:
+    """The evolution a command's parsed options (``add_search_args``) describe for one suite."""
+    return EvolveConfig(suite=suite, tasks=tasks, rounds=a.rounds, dev_seeds=a.dev_seeds,
+                        heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds, name=name,
+                        max_clusters=a.max_clusters, eod=EODParams(epsilon=a.eod_epsilon),
+                        cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
+                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
+                        llm=llm_from_env(), max_depth=a.max_depth)
 
 
 def tasks_of(text: str) -> tuple[str, ...]:

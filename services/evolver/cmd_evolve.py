@@ -18,14 +18,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.progress import PhaseBars, add_progress_option
-from services.evolver.cluster import ClusterParams
-from services.evolver.cmd_common import add_run_args, llm_from_env, run_config, tasks_of
-from services.evolver.eod import EODParams
-from services.evolver.evolve import EvolveConfig, Evolution
-from services.evolver.gate import GateParams
+from services.evolver.cmd_common import add_run_args, add_search_args, evolve_config, run_config, tasks_of
+from services.evolver.evolve import Evolution
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
-from services.evolver.repair import SearchParams
 from services.evolver.stack import endpoints, stop_on_sigterm
 from services.evolver.store import RolloutStore, StoreError
 
@@ -60,32 +56,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="zetta evolve", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     add_run_args(p)
-    p.add_argument("--rounds", type=int, default=1)
-    p.add_argument("--dev-seeds", type=int, default=EvolveConfig.dev_seeds, help="repair seeds per task")
-    p.add_argument("--heldout-seeds", type=int, default=EvolveConfig.heldout_seeds,
-                   help="gate (admission) seeds per task")
-    p.add_argument("--test-seeds", type=int, default=EvolveConfig.test_seeds,
-                   help="seeds of the reported number per task (dev + held-out + test <= 50 initial states)")
+    add_search_args(p)
     p.add_argument("--name", default="evolved", help="harness name prefix (versions are <name>-<task>@N)")
-    p.add_argument("--max-clusters", type=int, default=EvolveConfig.max_clusters,
-                   help="clusters repaired per task and round, largest first")
-    p.add_argument("--max-candidates", type=int, default=SearchParams.max_candidates,
-                   help="candidate patches validated per cluster and depth")
-    p.add_argument("--max-depth", type=int, default=EvolveConfig.max_depth,
-                   help="internal versions stacked per cluster until one solves every cluster seed")
-    p.add_argument("--regression-min", type=float, default=1.0,
-                   help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
-    p.add_argument("--eod-epsilon", type=float, default=EODParams().epsilon)
-    p.add_argument("--cluster-radius", type=float, default=ClusterParams().radius)
-    p.add_argument("--cluster-max-size", type=int, default=ClusterParams().max_size,
-                   help="most failures per cluster (0: no limit)")
     a = p.parse_args(argv)
     store_dir = a.store or Path("runs") / f"evolve-{a.suite}"
-    cfg = EvolveConfig(suite=a.suite, tasks=tasks_of(a.tasks), rounds=a.rounds, dev_seeds=a.dev_seeds,
-                       heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds, name=a.name, max_clusters=a.max_clusters,
-                       eod=EODParams(epsilon=a.eod_epsilon), cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
-                       search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
-                       llm=llm_from_env(), max_depth=a.max_depth)
+    cfg = evolve_config(a, a.suite, tasks_of(a.tasks), a.name)
     store = RolloutStore(store_dir)
     bars = PhaseBars()
     t0 = time.time()

@@ -24,11 +24,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS
 from services.common.progress import PhaseBars, add_progress_option
 from services.common.provenance import git_source
 from services.evolver import results
-from services.evolver.cmd_common import llm_from_env, publish_dir
+from services.evolver.cmd_common import add_search_args, evolve_config, publish_dir
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -79,18 +79,16 @@ def main(argv: Sequence[str]) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--suites", default="libero_goal_task,libero_goal_swap", help="suites to evolve on, comma-separated")
     p.add_argument("--tasks", default="0-9", help="task indices per suite, e.g. 0-9 or 1,6,9")
-    p.add_argument("--rounds", type=int, default=2)
-    p.add_argument("--dev-seeds", type=int, default=EvolveConfig.dev_seeds, help="repair seeds per task")
-    p.add_argument("--heldout-seeds", type=int, default=EvolveConfig.heldout_seeds, help="gate seeds per task")
-    p.add_argument("--test-seeds", type=int, default=EvolveConfig.test_seeds,
-                   help="seeds of the reported number per task (dev + held-out + test <= 50)")
+    add_search_args(p)
+    p.set_defaults(rounds=2)
     p.add_argument("--transfer-suite", default="libero_goal", help="suite for zero-shot transfer ('' for none)")
     p.add_argument("--transfer-seeds", type=int, default=20, help="test seeds per transfer task")
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
     p.add_argument("--model", default=DEFAULT_POLICY)
-    p.add_argument("--execute-steps", type=int, default=2)
+    p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
+                   help=f"actions of each chunk executed per policy call (default {EXECUTE_STEPS}, the VLA's own)")
     p.add_argument("--max-steps", type=int, default=0)
     p.add_argument("--concurrency", type=int, default=2)
     p.add_argument("--env-workers", type=int, default=1)
@@ -103,7 +101,9 @@ def main(argv: Sequence[str]) -> int:
             "policy": results.policy_provenance(a.model), "control_model": EvolveConfig.control_model,
             "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,
                         "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
-                        "execute_steps": a.execute_steps, "max_steps": a.max_steps}}
+                        "execute_steps": a.execute_steps, "max_steps": a.max_steps,
+                        **{k: getattr(a, k) for k in ("max_clusters", "max_candidates", "max_depth", "regression_min",
+                                                      "eod_epsilon", "cluster_radius", "cluster_max_size")}}}
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
                                           a.out / "stack", False) as ep:
@@ -115,9 +115,7 @@ def main(argv: Sequence[str]) -> int:
                     store = RolloutStore(a.out / suite)
                     t0 = time.time()
                     # One registry serves every suite: the suite in the name keeps each task's versions apart.
-                    cfg = EvolveConfig(suite=suite, tasks=tasks, rounds=a.rounds, dev_seeds=a.dev_seeds,
-                                       heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds,
-                                       name=f"evolved-{suite}", llm=llm_from_env())
+                    cfg = evolve_config(a, suite, tasks, f"evolved-{suite}")
                     try:
                         Evolution(cfg, store, run, registry, bars).run()
                     except StoreError as exc:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.common.policies import DEFAULT_POLICY
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS
 from services.evolver import metrics
 from services.evolver.evolve import EvolveConfig, Evolution
 from services.evolver.gate import GateParams
@@ -101,7 +101,7 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
                                        "ZETTA_EVOLVER_LLM_URL configured")
     return {"suite": spec["suite"], "tasks": tasks, "rounds": int(spec["rounds"]), "dev_seeds": int(spec["dev_seeds"]),
             "heldout_seeds": int(spec["heldout_seeds"]), "model": spec.get("model") or DEFAULT_POLICY,
-            "execute_steps": int(spec.get("execute_steps") or 2), "max_steps": int(spec.get("max_steps") or 0),
+            "execute_steps": int(spec.get("execute_steps") or EXECUTE_STEPS), "max_steps": int(spec.get("max_steps") or 0),
             "concurrency": int(spec.get("concurrency") or 2), "name": spec.get("name") or "evolved",
             "regression_min": float(spec.get("regression_min") or 1.0),
             "max_clusters": int(spec.get("max_clusters") or EvolveConfig.max_clusters),

@@ -39,7 +39,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY, policy_env_config
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, policy_env_config
 from services.common.progress import add_progress_option, progress
 from zetta.client import Gateway, SessionGroup, ZettaError
 from zetta.credentials import ClientCredentials, add_credential_flags, credentials_from_args
@@ -48,8 +48,6 @@ from zetta_wire.stats import wilson
 from zetta_wire.v1 import types_pb2
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
-#: Actions of each chunk executed before the policy is asked again (the VLA's evaluation setting).
-DEMO_EXECUTE_STEPS = 4
 
 
 @dataclass
@@ -74,7 +72,7 @@ class DemoResult:
 
 
 async def run_demo(address: str, episodes: int, suite: str, task: str, mode: str, max_steps: int,
-                   model: str = DEFAULT_POLICY, execute_steps: int = DEMO_EXECUTE_STEPS,
+                   model: str = DEFAULT_POLICY, execute_steps: int = EXECUTE_STEPS,
                    credentials: ClientCredentials | None = None) -> DemoResult:
     """Create ``episodes`` sessions, run one episode in each concurrently, close them.
 
@@ -255,8 +253,8 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
                    help="client-driven policy_step loop (default) or whole episodes inside the workers")
     p.add_argument("--max-steps", type=int, default=0, help="step budget per episode (default: the suite's)")
     p.add_argument("--model", default=DEFAULT_POLICY, help=f"the policy (default {DEFAULT_POLICY})")
-    p.add_argument("--execute-steps", type=int, default=DEMO_EXECUTE_STEPS,
-                   help=f"actions of each chunk run per policy call (default {DEMO_EXECUTE_STEPS})")
+    p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
+                   help=f"actions of each chunk run per policy call (default {EXECUTE_STEPS})")
     add_progress_option(p)
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.common.policies import DEFAULT_POLICY, checkpoint_dir, policy_env_config
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir, policy_env_config
 from services.common.provenance import page_header, provenance
 from services.harness.package import format as package_format
 from zetta.client import EpisodeSummary, Gateway, SessionGroup, ZettaError
@@ -37,8 +37,6 @@ DEMO_SUITE = "libero_goal_lan"
 DEMO_TASK = "put_the_cream_cheese_in_the_bowl"
 DEMO_HARNESS = ROOT / "examples" / "harnesses" / "libero-goal-pick-place"
 DO_NOTHING = "do-nothing"
-#: Actions of each chunk executed before the policy is asked again (the VLA's evaluation setting).
-EXECUTE_STEPS = 4
 CONDITIONS = ("bare", "harness", "control")
 LABELS = {"bare": "frozen policy alone", "harness": "frozen policy + harness",
           "control": "do-nothing policy + harness (control)"}
