@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import hashlib
 import json
 import os
 import sys
@@ -29,8 +28,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients" / "python"))
 
-from services.common.policies import DEFAULT_POLICY  # noqa: E402
-from services.common.provenance import page_header, provenance, write_results  # noqa: E402
+from services.common.policies import DEFAULT_POLICY, checkpoint_dir  # noqa: E402
+from services.common.provenance import page_header, provenance, weights_sha256, write_results  # noqa: E402
 from services.harness.package.loader import load_package  # noqa: E402
 from zetta.client import EpisodeSummary, Gateway, ZettaError  # noqa: E402
 from services.ops.local_stack import LocalStack  # noqa: E402
@@ -137,13 +136,13 @@ def table(rows: list[dict]) -> str:
 
 
 def checkpoint_id(model: str) -> str:
-    """sha256 prefix and time of the policy checkpoint the run used (the VLA is retrained often)."""
-    path = ROOT / "services" / "policy_worker" / "checkpoints" / model / "model.pt"
-    if not path.exists():
+    """The weights' sha256 (the hash every results file reports) and when the checkpoint was written."""
+    ckpt = checkpoint_dir(model)
+    digest = weights_sha256(ckpt)
+    if not digest or ckpt is None:
         return "no checkpoint file (not a checkpoint model)"
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(path.stat().st_mtime))
-    return f"model.pt sha256 {digest}..., written {stamp}"
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime((ckpt / "model.pt").stat().st_mtime))
+    return f"model.pt sha256 {digest[:12]}..., written {stamp}"
 
 
 def page(doc: dict) -> str:

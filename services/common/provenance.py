@@ -8,6 +8,7 @@ which are out of date). :func:`page_header` is the head every such page shares.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import time
@@ -31,6 +32,13 @@ def git_source(root: Path) -> dict[str, Any]:
             return ""
 
     return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
+def weights_sha256(checkpoint: str | Path | None) -> str:
+    """sha256 of a checkpoint's weights (``model.pt``), the hash every results file reports, so a
+    reader matches an evolution run to the policy evaluation of the same weights ("" without one)."""
+    path = Path(checkpoint) / "model.pt" if checkpoint else None
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None and path.is_file() else ""
 
 
 def provenance(command: str, root: Path) -> dict[str, Any]:

@@ -12,29 +12,16 @@ Published as docs/results/evolution.json, it renders docs/results/evolution.md (
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from services.common.provenance import page_header
+from services.common.provenance import page_header, weights_sha256
 from services.evolver.store import RolloutStore
 
 SCHEMA = 1
 ARMS = ("bare", "final", "control")
-
-
-def checkpoint_hash(path: Path) -> str:
-    """SHA-256 over a checkpoint directory's files (relative path, NUL, bytes; sorted); "" if absent."""
-    if not path.exists():
-        return ""
-    h = hashlib.sha256()
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
-    for f in files:
-        h.update(str(f.relative_to(path.parent if path.is_file() else path)).encode() + b"\0")
-        h.update(f.read_bytes())
-    return h.hexdigest()
 
 
 def policy_provenance(model: str) -> dict[str, Any]:
@@ -42,7 +29,7 @@ def policy_provenance(model: str) -> dict[str, Any]:
     from services.common.policies import checkpoint_dir
 
     path = checkpoint_dir(model)
-    return {"model": model, "checkpoint": str(path or ""), "checkpoint_sha256": checkpoint_hash(path) if path else ""}
+    return {"model": model, "checkpoint": str(path or ""), "checkpoint_sha256": weights_sha256(path)}
 
 
 def _mean(rows: Sequence[Mapping[str, Any]], arm: str, key: str = "rate") -> float:

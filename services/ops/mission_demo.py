@@ -16,7 +16,6 @@ episode are. Episodes whose rollouts failed for infrastructure reasons are rerun
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from collections import Counter
@@ -26,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir, policy_env_config
-from services.common.provenance import page_header, provenance
+from services.common.provenance import page_header, provenance, weights_sha256
 from services.harness.package import format as package_format
 from zetta.client import EpisodeSummary, Gateway, SessionGroup, ZettaError
 from zetta.credentials import ClientCredentials
@@ -140,12 +139,6 @@ async def run_mission(address: str, spec: MissionSpec, log: Any = print,
     return res
 
 
-def _checkpoint_sha(model: str) -> str:
-    ckpt = checkpoint_dir(model)
-    path = ckpt / "model.pt" if ckpt is not None else None
-    return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None and path.exists() else ""
-
-
 def _relative(path: str) -> str:
     """``path`` relative to the working directory when it lies below it (what a README can show)."""
     if not path:
@@ -183,7 +176,7 @@ def report_doc(res: MissionResult) -> dict[str, Any]:
              f"--task {spec.task}" if spec.task != default.task else "",
              f"--harness {spec.harness_dir}" if Path(spec.harness_dir) != default.harness_dir else ""]
     return {**provenance(" ".join(["zetta up --demo", *filter(None, flags)]), ROOT), "suite": spec.suite, "task": spec.task, "seeds": list(spec.seeds),
-            "model": spec.model, "checkpoint_sha256": _checkpoint_sha(spec.model),
+            "model": spec.model, "checkpoint_sha256": weights_sha256(checkpoint_dir(spec.model)),
             "harness": Path(spec.harness_dir).name, "harness_content_hash": package_format.content_hash(harness_files),
             "execute_steps": spec.execute_steps, "wall_s": round(res.wall_s, 1), "video": _relative(res.video),
             "video_seed": res.video_seed, "video_recovered": res.video_recovered, "episodes": rows}

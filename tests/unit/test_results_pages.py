@@ -100,3 +100,23 @@ def test_the_bench_rollout_page_from_its_episodes() -> None:
                       {"mode": "run_episode", "concurrency": 4, "runs": [run(2.0, 4)]}]}
     page = gen.render("bench-rollout", doc)
     assert "| naive | 1 | 2 | 100% (2/2) | 30.0 | 1.00x |" in page and "| run_episode | 4 | 4 |" in page
+
+
+def test_published_policy_figures_are_of_the_shipped_weights() -> None:
+    """A figure measured on other weights no longer reproduces with the shipped checkpoint: re-measure
+    it (or remove it) when the checkpoint changes. Every results file names its weights the same way."""
+    from services.common.policies import checkpoint_dir
+    from services.common.provenance import weights_sha256
+
+    found = 0
+    for f in sorted(RESULTS.glob("*.json")):
+        doc = json.loads(f.read_text())
+        policy = doc.get("policy") if isinstance(doc.get("policy"), dict) else doc
+        sha, model = policy.get("checkpoint_sha256"), policy.get("model")
+        if not sha or not isinstance(model, str) or checkpoint_dir(model) is None:
+            continue
+        found += 1
+        assert sha == weights_sha256(checkpoint_dir(model)), (
+            f"{f.name}: measured on {model} weights {sha[:12]}..., the shipped checkpoint's are "
+            f"{weights_sha256(checkpoint_dir(model))[:12]}...: re-measure")
+    assert found >= 2, "vla.json and demo.json name the weights they measured"

@@ -9,7 +9,6 @@ The page is never edited by hand.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import platform
 import subprocess
@@ -18,12 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from services.common.provenance import weights_sha256
 from zetta_wire.stats import wilson
-
-
-def checkpoint_hash(path: str | Path) -> str:
-    """sha256 of the checkpoint's weights (model.pt): names exactly what was evaluated."""
-    return hashlib.sha256((Path(path) / "model.pt").read_bytes()).hexdigest()
 
 
 def git_commit() -> str:
@@ -89,7 +84,7 @@ def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint:
         if overlap:
             raise ValueError(f"{name}: init states {overlap} were in the checkpoint's training data; "
                              f"evaluate on others (--seed-offset)")
-    sha = checkpoint_hash(checkpoint)
+    sha = weights_sha256(checkpoint)
     run = {"command": " ".join(command), "commit": git_commit(),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "machine": f"{platform.machine()}, {_cpus()} CPUs", "wall_s": round(wall_s, 1),
