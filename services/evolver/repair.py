@@ -22,7 +22,7 @@ from typing import Any
 
 from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft, PlanDraft, render
-from services.evolver.replay import first_fire, resume_frame
+from services.evolver.replay import SandboxedCritic, first_fire, resume_frame
 from services.evolver.trace import Trace
 
 #: Which recoveries are worth pairing with which evidence: a typed compatibility table over the
@@ -327,25 +327,34 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
 
 
 def code_detector(draft: HarnessDraft, name: str) -> Any:
-    """The ``detect`` function of code critic ``name``, imported through the package loader's checks
-    (raises PackageRejected for code the loader refuses)."""
+    """Code critic ``name`` of the draft, for :func:`replay.first_fire`: past the package loader's
+    static checks (raises PackageRejected for code they refuse), loaded in a sandbox child
+    (a :class:`replay.SandboxedCritic`: close it when done; ReplayFailed when it does not load
+    there). With ``ZETTA_HARNESS_SANDBOX=off`` (trusted code only): its ``detect`` function,
+    imported in this process."""
     from services.harness.package.loader import load_files
+    from services.harness.sandbox import client as sandbox
 
-    return load_files(render(draft)).tools[name].detect
+    if not sandbox.enabled():
+        return load_files(render(draft)).tools[name].detect
+    pkg = load_files(render(draft), import_tools=False)  # the static checks; nothing runs here
+    return SandboxedCritic(name, pkg.sources[name], pkg.params.get(name, {}))
 
 
 def build_error(draft: HarnessDraft) -> str | None:
-    """Why the draft's package would not load or build a runtime (the critic service's own checks), or None."""
+    """Why the draft's package would not load or build a runtime (the critic service's own checks), or None.
+    The package's tools are imported in a sandbox child, not here (``ZETTA_HARNESS_SANDBOX=off``: here)."""
     from services.harness.package.errors import PackageRejected
     from services.harness.package.loader import load_files, unload
     from services.harness.runtime.engine import HarnessError, HarnessRuntime
+    from services.harness.sandbox import client as sandbox
 
     try:
-        pkg = load_files(render(draft))
+        pkg = load_files(render(draft), import_tools=not sandbox.enabled())
     except PackageRejected as exc:
         return f"package rejected: {exc}"
     try:
-        HarnessRuntime(pkg)
+        HarnessRuntime(pkg).close()  # a runtime with package code kills its sandbox child
     except HarnessError as exc:
         return f"harness does not build: {exc}"
     finally:
