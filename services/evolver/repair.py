@@ -15,7 +15,9 @@ which then face exactly the same checks.
 
 from __future__ import annotations
 
+import functools
 import itertools
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -326,6 +328,22 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     return build_error(cand.apply(parent))
 
 
+@functools.cache
+def _warn_in_process() -> None:
+    logging.getLogger("evolver").warning(
+        "ZETTA_HARNESS_SANDBOX=off: candidate package code runs inside this process (trusted code only)")
+
+
+def _sandboxed() -> bool:
+    """Whether package code runs in the harness sandbox (ZETTA_HARNESS_SANDBOX, default on)."""
+    from services.harness.sandbox import client as sandbox
+
+    on = sandbox.enabled()
+    if not on:
+        _warn_in_process()
+    return on
+
+
 def code_detector(draft: HarnessDraft, name: str) -> Any:
     """Code critic ``name`` of the draft, for :func:`replay.first_fire`: past the package loader's
     static checks (raises PackageRejected for code they refuse), loaded in a sandbox child
@@ -333,9 +351,8 @@ def code_detector(draft: HarnessDraft, name: str) -> Any:
     there). With ``ZETTA_HARNESS_SANDBOX=off`` (trusted code only): its ``detect`` function,
     imported in this process."""
     from services.harness.package.loader import load_files
-    from services.harness.sandbox import client as sandbox
 
-    if not sandbox.enabled():
+    if not _sandboxed():
         return load_files(render(draft)).tools[name].detect
     pkg = load_files(render(draft), import_tools=False)  # the static checks; nothing runs here
     return SandboxedCritic(name, pkg.sources[name], pkg.params.get(name, {}))
@@ -347,10 +364,9 @@ def build_error(draft: HarnessDraft) -> str | None:
     from services.harness.package.errors import PackageRejected
     from services.harness.package.loader import load_files, unload
     from services.harness.runtime.engine import HarnessError, HarnessRuntime
-    from services.harness.sandbox import client as sandbox
 
     try:
-        pkg = load_files(render(draft), import_tools=not sandbox.enabled())
+        pkg = load_files(render(draft), import_tools=not _sandboxed())
     except PackageRejected as exc:
         return f"package rejected: {exc}"
     try:
