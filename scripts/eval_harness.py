@@ -5,7 +5,9 @@ loopback gRPC): for each (suite, task, seed) one session runs the bare policy an
 policy plus the harness (ResetSpec.harness_dir), side by side, with identical episode keys. Per
 episode it records success, m*, and the harness report: how many actions the policy and the
 recoveries took and the interventions by kind, so a success that recoveries did all the work for
-shows as such. Results: one JSON row per episode appended to --out, the table on stdout and, with
+shows as such. The harness's package code runs only in the env worker's sandbox children
+(services/harness/sandbox/, docs/security.md); this script checks the package and hashes it, it
+never imports its tools. Results: one JSON row per episode appended to --out, the table on stdout and, with
 --results, a results file (every row, the command, the commit) and its page beside it
 (docs/results/harness.json and .md; docs/harness-results.md explains them).
 
@@ -202,7 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rebuild", action="store_true", help="run nothing: rebuild the table (and --results) from --out")
     a = p.parse_args(argv)
     a.harness_rel = os.path.relpath(Path(a.harness).resolve(), ROOT)
-    a.content_hash = load_package(a.harness).content_hash
+    # The static checks and the content hash only: the package's code runs in the env worker's
+    # sandbox children (services/harness/sandbox/), never in this process.
+    a.content_hash = load_package(a.harness, import_tools=False).content_hash
     a.checkpoint = checkpoint_id(a.model)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)

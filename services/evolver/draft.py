@@ -4,7 +4,8 @@ The offline search writes no code: its critics are library predicate templates w
 parameters, every plan maps an evidence kind to a library recovery with its arguments. A critic
 proposed by the LLM backend may be code instead (``CriticDraft.code``: a ``detect(window, params)``
 function); it is rendered as tools/<name>.py and goes through the same loader checks (imports,
-forbidden names), the runtime's signal whitelist and its sandboxed call budget as any package code.
+forbidden names), the runtime's signal whitelist and its sandboxed call budget as any package code;
+the evolver imports and replays it only in a harness sandbox child (services/evolver/replay.py).
 :func:`render` turns a draft into the agreed package files (SKILL.md with TOML front matter that
 declares library critics and adjudication rules, tools/*.py and params/*.toml for code critics,
 plans/*.toml playbooks); the critic service hashes, checks and versions them.

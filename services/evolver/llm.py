@@ -22,6 +22,7 @@ from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft
 from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, code_detector, library, plan_of,
                                      plan_stages, playbooks, score_critic)
+from services.evolver.replay import ReplayFailed, SandboxedCritic
 from services.evolver.trace import Trace
 
 
@@ -182,7 +183,15 @@ def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessD
         detect = code_detector(cand.apply(parent), name)
     except PackageRejected as exc:
         return None, f"package rejected: {exc}"
-    res = score_critic(detect, setting, medoid, members, successes, params.window)
+    except ReplayFailed as exc:
+        return None, str(exc)
+    try:
+        res = score_critic(detect, setting, medoid, members, successes, params.window)
+    except ReplayFailed as exc:
+        return None, str(exc)  # raised, overran or crashed on a replay: recorded, the next patch goes on
+    finally:
+        if isinstance(detect, SandboxedCritic):
+            detect.close()
     if res is None:
         return None, f"{name} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
     if res[2] > params.max_false_positive:

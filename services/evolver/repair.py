@@ -15,14 +15,16 @@ which then face exactly the same checks.
 
 from __future__ import annotations
 
+import functools
 import itertools
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft, PlanDraft, render
-from services.evolver.replay import first_fire, resume_frame
+from services.evolver.replay import SandboxedCritic, first_fire, resume_frame
 from services.evolver.trace import Trace
 
 #: Which recoveries are worth pairing with which evidence: a typed compatibility table over the
@@ -326,26 +328,49 @@ def check_patch(parent: HarnessDraft, cand: Candidate, max_edits: int) -> str | 
     return build_error(cand.apply(parent))
 
 
+@functools.cache
+def _warn_in_process() -> None:
+    logging.getLogger("evolver").warning(
+        "ZETTA_HARNESS_SANDBOX=off: candidate package code runs inside this process (trusted code only)")
+
+
+def _sandboxed() -> bool:
+    """Whether package code runs in the harness sandbox (ZETTA_HARNESS_SANDBOX, default on)."""
+    from services.harness.sandbox import client as sandbox
+
+    on = sandbox.enabled()
+    if not on:
+        _warn_in_process()
+    return on
+
+
 def code_detector(draft: HarnessDraft, name: str) -> Any:
-    """The ``detect`` function of code critic ``name``, imported through the package loader's checks
-    (raises PackageRejected for code the loader refuses)."""
+    """Code critic ``name`` of the draft, for :func:`replay.first_fire`: past the package loader's
+    static checks (raises PackageRejected for code they refuse), loaded in a sandbox child
+    (a :class:`replay.SandboxedCritic`: close it when done; ReplayFailed when it does not load
+    there). With ``ZETTA_HARNESS_SANDBOX=off`` (trusted code only): its ``detect`` function,
+    imported in this process."""
     from services.harness.package.loader import load_files
 
-    return load_files(render(draft)).tools[name].detect
+    if not _sandboxed():
+        return load_files(render(draft)).tools[name].detect
+    pkg = load_files(render(draft), import_tools=False)  # the static checks; nothing runs here
+    return SandboxedCritic(name, pkg.sources[name], pkg.params.get(name, {}))
 
 
 def build_error(draft: HarnessDraft) -> str | None:
-    """Why the draft's package would not load or build a runtime (the critic service's own checks), or None."""
+    """Why the draft's package would not load or build a runtime (the critic service's own checks), or None.
+    The package's tools are imported in a sandbox child, not here (``ZETTA_HARNESS_SANDBOX=off``: here)."""
     from services.harness.package.errors import PackageRejected
     from services.harness.package.loader import load_files, unload
     from services.harness.runtime.engine import HarnessError, HarnessRuntime
 
     try:
-        pkg = load_files(render(draft))
+        pkg = load_files(render(draft), import_tools=not _sandboxed())
     except PackageRejected as exc:
         return f"package rejected: {exc}"
     try:
-        HarnessRuntime(pkg)
+        HarnessRuntime(pkg).close()  # a runtime with package code kills its sandbox child
     except HarnessError as exc:
         return f"harness does not build: {exc}"
     finally:

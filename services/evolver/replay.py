@@ -5,6 +5,14 @@ trace as the runtime builds them (the observation tensors a harness may read, th
 tool with its default noise over the recorded state, the last action that led to each frame,
 milestones reached so far) and reports the first env step at which a predicate held. The trace is recorded at the policy's call
 rate, so a window of n frames spans n policy calls here.
+
+Library predicates are platform code and run here. A code critic (package code: one an LLM wrote,
+tools/c_llm_<hash>.py) never runs in the evolver's process: :class:`SandboxedCritic` loads it in a
+harness sandbox child (services/harness/sandbox/, the one the env worker uses) and replays the
+trace through it frame by frame, under the platform's hard limit per call; a critic that raises,
+answers something else than a Proposal or None, overruns or kills its child fails the replay with
+:class:`ReplayFailed` and the reason. ``ZETTA_HARNESS_SANDBOX=off`` (trusted code only) runs it
+in-process instead, as the env worker then does.
 """
 
 from __future__ import annotations
@@ -42,9 +50,80 @@ def frames(trace: Trace) -> list[Frame]:
     return out
 
 
-def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any], params: Mapping[str, float],
-               instruction: str = "", start: int = 0, cached: list[Frame] | None = None) -> int | None:
-    """The env step at which ``fn(window, params)`` first returned evidence, or None."""
+class ReplayFailed(RuntimeError):
+    """A code critic failed on a sandboxed replay (it raised, returned something that is not a
+    Proposal, overran the hard limit or its sandbox child died); the message says which and why."""
+
+
+class SandboxedCritic:
+    """One code critic of a package (``tools/<stem>.py``, its ``critic_*`` function) loaded in its
+    own sandbox child for diagnostic replays: :func:`first_fire` runs it there. Its parameters are
+    the package's (``params/<stem>.toml``), bound at load. :meth:`close` kills the child."""
+
+    def __init__(self, stem: str, source: str, params: Mapping[str, Any], window: int = WINDOW) -> None:
+        from services.harness.runtime.budget import PlatformLimits
+        from services.harness.sandbox.client import CallFailed, SandboxError
+        from services.harness.sandbox.host import SandboxedCode
+
+        self.stem = stem
+        self.hard_limit_s = PlatformLimits.from_env().hard_limit_s
+        try:
+            self.code = SandboxedCode({stem: source}, {stem: dict(params)}, window)
+        except (SandboxError, CallFailed) as exc:
+            raise ReplayFailed(f"{stem} does not load in the sandbox: {exc}") from None
+        mine = [i for i, name in enumerate(self.code.critics) if name.startswith(stem + ".")]
+        if len(mine) != 1:
+            self.code.close()
+            raise ReplayFailed(f"{stem} defines {len(mine)} critic functions; a code critic has exactly one")
+        self.index = mine[0]
+        self.name = self.code.critics[self.index]
+
+    def close(self) -> None:
+        self.code.close()
+
+    def __enter__(self) -> "SandboxedCritic":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def first_fire(self, trace: Trace, instruction: str = "", start: int = 0,
+                   cached: list[Frame] | None = None) -> int | None:
+        """The env step at which the critic first proposed, or None; raises ReplayFailed."""
+        from services.harness.sandbox import codec
+        from services.harness.sandbox.client import SandboxError
+
+        fs = cached if cached is not None else frames(trace)
+        self.code.start(instruction, trace.milestone_names)
+        limit = self.hard_limit_s
+        run = [(self.index, False)]
+        try:
+            # The frames before ``start`` fill the window only; from ``start`` on the critic runs.
+            for k in range(max(0, start - WINDOW + 1), len(fs)):
+                results = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run if k >= start else [],
+                                         lambda i: limit)
+                if not results:
+                    continue
+                res = results[0]
+                if res.kind == codec.R_PROPOSAL:
+                    return fs[k].step
+                if res.kind == codec.R_ERROR:
+                    raise ReplayFailed(f"{self.name} failed at env step {fs[k].step} of a replay in the sandbox: "
+                                       f"{res.error}")
+        except SandboxError as exc:
+            self.code.close()  # the next replay starts a fresh child
+            raise ReplayFailed(f"{self.name} was stopped on a replay in the sandbox: {exc.reason}") from None
+        return None
+
+
+def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any] | SandboxedCritic,
+               params: Mapping[str, float], instruction: str = "", start: int = 0,
+               cached: list[Frame] | None = None) -> int | None:
+    """The env step at which ``fn(window, params)`` first returned evidence, or None. A
+    :class:`SandboxedCritic` runs in its sandbox child (with the parameters it was loaded with) and
+    raises ReplayFailed when it fails; a library predicate that raises is silent on that trace."""
+    if isinstance(fn, SandboxedCritic):
+        return fn.first_fire(trace, instruction, start, cached)
     fs = cached if cached is not None else frames(trace)
     for k in range(start, len(fs)):
         window = Window(frames=fs[max(0, k - WINDOW + 1): k + 1], instruction=instruction,

@@ -5,7 +5,7 @@ services/harness/sandbox/client.py. It imports numpy and the harness runtime, le
 network (an empty network namespace, when the kernel permits), and then forks one child per
 request it reads on its control socket. Each child locks itself in before it reads any package
 code (:func:`jail`): private scratch directory as its root, resource limits, uid/gid 65534,
-no new privileges, killed with its zygote. It then serves one harness runtime's package code
+no new privileges, killed with its zygote, and last a seccomp filter (seccomp.py). It then serves one harness runtime's package code
 over the channel socket the host passed with the request (services/harness/sandbox/codec.py).
 Nothing here is imported by the host process.
 """
@@ -36,7 +36,7 @@ import subprocess  # noqa: E402,F401 - preloaded: a child cannot read modules fr
 
 import numpy as np  # noqa: E402
 
-from services.harness.sandbox import codec  # noqa: E402
+from services.harness.sandbox import codec, seccomp  # noqa: E402
 
 CLONE_NEWNET = 0x40000000
 CLONE_NEWUSER = 0x10000000
@@ -142,9 +142,13 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
     _prctl(PR_SET_NO_NEW_PRIVS, 1)
     _prctl(PR_SET_DUMPABLE, 0)
     _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)  # after setuid, which clears it
+    # Last: the system call filter (services/harness/sandbox/seccomp.py); needs no-new-privileges.
+    filtered = seccomp.install()
+    if filtered:
+        degraded.append(filtered)
     return {
         "uid": os.getuid(), "gid": os.getgid(), "chroot": chrooted, "network_isolated": not network_degraded,
-        "no_new_privs": True, "memory_mb": memory_mb, "cpu_s": cpu_s, "nofile": nofile, "fsize": fsize,
+        "no_new_privs": True, "seccomp": not filtered, "memory_mb": memory_mb, "cpu_s": cpu_s, "nofile": nofile, "fsize": fsize,
         "degraded": degraded, "scratch": scratch,
     }
 

@@ -13,8 +13,9 @@ package code is read): uid and gid 65534 (nobody) with no supplementary groups; 
 not dumpable; an empty network namespace (no interface is up, so no socket reaches anything);
 a private scratch directory as its root (chroot): nothing else of the file system is visible,
 let alone writable; RLIMIT_NPROC 0 (no fork, no thread, no exec'd helper), RLIMIT_AS (memory),
-RLIMIT_CPU, RLIMIT_NOFILE, RLIMIT_FSIZE; killed when its zygote dies, the zygote when its host
-dies. When the host is not root or the kernel refuses a namespace, the child runs degraded and
+RLIMIT_CPU, RLIMIT_NOFILE, RLIMIT_FSIZE; a seccomp filter (services/harness/sandbox/seccomp.py:
+no socket, exec, namespace, ptrace, mount, bpf, perf, keyring or io_uring call, signals only to
+itself); killed when its zygote dies, the zygote when its host dies. When the host is not root or the kernel refuses a namespace, the child runs degraded and
 says so (:attr:`SandboxClient.isolation`, the ``zetta_harness_sandbox_isolation`` gauge, a
 warning in the log).
 
@@ -528,14 +529,15 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
         _GAUGE = Gauge("zetta_harness_sandbox_isolation",
                        "Isolation each harness sandbox child gets (1 enforced, 0 degraded), by feature.", ["feature"])
     features = {"unprivileged_user": report.get("uid") == 65534, "network": bool(report.get("network_isolated")),
-                "filesystem": bool(report.get("chroot")), "no_new_privs": bool(report.get("no_new_privs"))}
+                "filesystem": bool(report.get("chroot")), "no_new_privs": bool(report.get("no_new_privs")),
+                "seccomp": bool(report.get("seccomp"))}
     for name, on in features.items():
         _GAUGE.labels(name).set(1.0 if on else 0.0)
     if report.get("degraded"):
         log.warning("harness sandbox DEGRADED: %s", "; ".join(map(str, report["degraded"])))
     else:
         log.info("harness sandbox: uid %s, own empty network namespace, chroot to a private scratch dir, "
-                 "rlimits memory %s MB, CPU %s s, %s files, no processes", report.get("uid"), report.get("memory_mb"),
+                 "rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp filter", report.get("uid"), report.get("memory_mb"),
                  report.get("cpu_s"), report.get("nofile"))
 
 
