@@ -54,7 +54,7 @@ def gate_numbers(gate: Mapping[str, Any]) -> dict[str, Any]:
 
 def _candidates(validations: Sequence[dict[str, Any]], merges: Sequence[dict[str, Any]],
                 gate: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Candidates tried in a round: validated on their seed, and refused, counted by the reason's kind."""
+    """Candidates run closed-loop in a round, those validated on their seed, and the refusals by kind."""
     refused: Counter[str] = Counter()
     for v in validations:
         if "skipped" in v:
@@ -64,7 +64,7 @@ def _candidates(validations: Sequence[dict[str, Any]], merges: Sequence[dict[str
     refused["consolidation"] += sum(not m.get("joined") for m in merges)
     if gate is not None and not gate["admitted"]:
         refused[gate["refusal"]] += 1
-    return {"tried": sum(len(v.get("candidates", [])) if "skipped" in v else 1 for v in validations),
+    return {"run": sum(len(v.get("candidates", [])) if "skipped" in v else 1 for v in validations),
             "validated": sum(bool(v.get("medoid_success")) for v in validations), "refused": dict(+refused)}
 
 
@@ -101,10 +101,10 @@ def round_rows(store: RolloutStore, suite: str) -> list[dict[str, Any]]:
 
 def curves(store: RolloutStore, suite: str) -> list[dict[str, Any]]:
     """Every cluster's internal versions (v0 = the harness before the repair) with their success on
-    the cluster's seeds, whether each was validated on its seed, and the candidates tried."""
+    the cluster's seeds, whether each was validated on its seed, and the candidates the search proposed."""
     seeds = {c["cluster"]: c.get("seeds", []) for c in store.events("cluster")}
     return [{"task": c["task"], "round": c["round"], "cluster": c["cluster"], "seeds": seeds.get(c["cluster"], []),
-             "tried": c.get("tried", 0),
+             "proposed": c.get("tried", 0),
              "versions": [{"version": v["version"], "harness": v.get("harness", ""), "successes": v["successes"],
                            "episodes": v["episodes"], "validated": bool(v.get("validated"))} for v in c["versions"]]}
             for c in store.events("cluster_versions") if c.get("suite", suite) == suite]

@@ -289,9 +289,9 @@ def _pair(x: Sequence[int]) -> str:
 
 
 def _candidates_cell(c: Mapping[str, Any]) -> str:
-    """'4 tried: 1 validated; refused: validation 2, held-out 1'."""
+    """'4 run: 1 validated; refused: validation 2, held-out 1'."""
     refused = ", ".join(f"{k} {n}" for k, n in sorted(c["refused"].items()))
-    return f"{c['tried']} tried: {c['validated']} validated" + (f"; refused: {refused}" if refused else "")
+    return f"{c['run']} run: {c['validated']} validated" + (f"; refused: {refused}" if refused else "")
 
 
 def _gate_cell(g: Mapping[str, Any] | None) -> str:
@@ -342,12 +342,12 @@ def render_curves(data: Mapping[str, Any]) -> list[str]:
         return []
     lines = ["#### Internal versions per cluster (the aha curves)", "",
              "| suite | task | round | cluster | seeds | versions (success on the cluster's seeds; ✓ validated) | "
-             "curve | candidates tried |", "|---|---|---|---|---|---|---|---|"]
+             "curve | candidates proposed |", "|---|---|---|---|---|---|---|---|"]
     for suite, c in rows:
         steps = " → ".join(f"{v['version']} {v['successes']}/{v['episodes']}{' ✓' if v['validated'] else ''}"
                            for v in c["versions"])
         lines.append(f"| {suite} | {c['task']} | {c['round']} | {c['cluster']} | {_ranges(c['seeds'])} | {steps} | "
-                     f"{_spark(c['versions'])} | {c['tried']} |")
+                     f"{_spark(c['versions'])} | {c['proposed']} |")
     return lines + [""]
 
 

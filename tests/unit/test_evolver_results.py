@@ -142,11 +142,11 @@ def test_history_per_task_and_round_from_the_recorded_events(tmp_path: Path) -> 
     data = experiment(tmp_path)
     first, second = data["suites"][SUITE]["history"]
     assert (first["round"], first["profile"], first["clusters"], first["repaired"], first["solved"]) == (1, [1, 4], 2, 1, 1)
-    assert first["candidates"] == {"tried": 3, "validated": 1, "refused": {"validation": 2, "consolidation": 1}}
+    assert first["candidates"] == {"run": 3, "validated": 1, "refused": {"validation": 2, "consolidation": 1}}
     assert first["gate"]["control"] == [0, 4] and first["gate"]["heldout"] == [3, 3] and first["admitted"] == "e-6@1"
     assert second["gate"]["refusal"] == "held-out" and second["candidates"]["refused"] == {"held-out": 1}
     text = results.render(data)
-    assert ("| libero_goal_task | 6 | 1 | bare | 1/4 | 2 | 1 / 1 | 3 tried: 1 validated; refused: consolidation 1, "
+    assert ("| libero_goal_task | 6 | 1 | bare | 1/4 | 2 | 1 / 1 | 3 run: 1 validated; refused: consolidation 1, "
             "validation 2 | regression 3/3, control (dev) 0/4, held-out 3/3 vs current 1/3 (bare 1/3): admitted | "
             "e-6@1 | 100 (20 / 50 / 30) |") in text
     assert "held-out 2/3 vs current 2/3 (bare 1/3): refused (held-out) | - | 40 (10 / 20 / 10) |" in text
