@@ -10,8 +10,9 @@ control. Each suite has its own store (<out>/<suite>, the usual `zetta evolve` s
 the transfer arm has one too (<out>/transfer-<suite>): the harness admitted for task t of an
 evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
 the transfer suite. <out>/results.json is the machine-readable result (services/evolver/results.py:
-commit, policy checkpoint hash, splits, test arms with Wilson intervals, control, recoveries'
-share, wall time); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
+commit, policy checkpoint hash, budgets, splits, test arms with Wilson intervals, control, recoveries'
+share, the goals and their gaps, the history per task and round, the internal-version curves,
+rollouts by purpose, wall time per phase); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
 --from <out>/results.json` publishes it as docs/results/evolution.{json,md}. Stop it and run the same command again: finished rollouts,
 rounds and admitted versions are kept (see `zetta evolve`).
 """

@@ -175,6 +175,7 @@ class Evolution:
         dev = self.store.seeds(self.cfg.suite, task, DEV)
         rollouts = self._rollouts(self._keys(task, dev, cur.ref, "profile"), f"r{round_} {task} profile", round_)
         prof = build_profile(self.store, rollouts, self.cfg.suite, task, cur.ref)
+        t_profile = time.time()
         self.store.record("profile", {"suite": self.cfg.suite, "task": task, "round": round_, "harness": cur.ref or "bare",
                                       "successes": prof.successes, "episodes": len(rollouts),
                                       "manifest": prof.manifest()}, ident=f"{self.cfg.suite}/{task}/{round_}")
@@ -190,11 +191,15 @@ class Evolution:
                 idx = [prof.failures.index(f) for f in cl.members]
                 repairs.append(self._repair_cluster(task, round_, cur, cl, [traces[i] for i in idx],
                                                     [eods[i] for i in idx], succ_traces, index))
+        t_repair = time.time()
         passing = [r for r in repairs if r.passes(self.cfg.gate)]
         if passing:
             self.gate(task, round_, cur, passing, [r.record for r in repairs])
-        self.store.record("round_done", {"suite": self.cfg.suite, "task": task, "round": round_,
-                                         "wall_s": time.time() - t0, "patches": sum(len(r.stack) for r in passing)})
+        t_end = time.time()
+        self.store.record("round_done", {"suite": self.cfg.suite, "task": task, "round": round_, "wall_s": t_end - t0,
+                                         "phases_s": {"profile": t_profile - t0, "repair": t_repair - t_profile,
+                                                      "gate": t_end - t_repair},
+                                         "patches": sum(len(r.stack) for r in passing)})
 
     def _reference_index(self, task: str, rollouts: Sequence[Rollout], failures: Sequence[Trace] = ()) -> SuccessIndex:
         """I_succ for t_EOD and clustering: the successes among this round's profile rollouts plus every
@@ -457,7 +462,8 @@ class Evolution:
 
     def final_eval(self, task: str) -> None:
         """The reported number, after every decision: the bare policy, the final harness and the final
-        harness around the do-nothing policy, on the test seeds."""
+        harness around the do-nothing policy, on the test seeds (with this call's wall time)."""
+        t0 = time.time()
         seeds = self.store.seeds(self.cfg.suite, task, TEST)
         ref = self.state[task].ref
         bare = self._rollouts(self._keys(task, seeds, "", "test"), f"final {task} bare", 0)
@@ -468,8 +474,8 @@ class Evolution:
                                     "bare": list(count(bare)), "final": list(count(final)), "seeds": seeds,
                                     "arms": {"bare": arm(self.store, bare), "final": arm(self.store, final),
                                              "control": arm(self.store, control)},
-                                    "split": self.store.split_manifest(self.cfg.suite, task)},
-                          ident=f"{self.cfg.suite}/{task}")
+                                    "split": self.store.split_manifest(self.cfg.suite, task),
+                                    "wall_s": time.time() - t0}, ident=f"{self.cfg.suite}/{task}")
 
 
 def step_rank(reached: int, interventions: Sequence[dict[str, Any]], recovery_steps: int) -> tuple[int, bool, int]:
