@@ -174,6 +174,7 @@ def test_unchecked_package_code_cannot_escape_the_sandbox(targets) -> None:
         evidence, ids = out["whoami"]
         assert ids == {"uid": 65534.0, "gid": 65534.0, "euid": 65534.0, "groups": 0.0}
         assert evidence == "/"  # its own scratch dir, as its root
+        assert child.isolation["mode"] == "root" and child.isolation["filesystem"] == "chroot"
         assert child.isolation["uid"] == 65534 and child.isolation["chroot"] and child.isolation["network_isolated"]
         assert child.isolation["degraded"] == []
         for attempt in ("system", "write_marker", "write_tmp", "read_passwd", "connect", "unix", "fork",

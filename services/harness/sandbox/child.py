@@ -2,10 +2,12 @@
 
 The zygote is started once per host process (env worker, critic service) by
 services/harness/sandbox/client.py. It imports numpy and the harness runtime, leaves the host's
-network (an empty network namespace, when the kernel permits), and then forks one child per
-request it reads on its control socket. Each child locks itself in before it reads any package
-code (:func:`jail`): private scratch directory as its root, resource limits, uid/gid 65534,
-no new privileges, killed with its zygote, and last a seccomp filter (seccomp.py). It then serves one harness runtime's package code
+network (an empty network namespace) and, when the host is not root, enters a user namespace
+(services/harness/sandbox/userns.py), and then forks one child per request it reads on its control
+socket. Each child locks itself in before it reads any package code (:func:`jail`): private
+scratch directory as its root, resource limits, uid/gid 65534 (root host) or no capabilities in
+the user namespace (non-root host), no new privileges, killed with its zygote, and last a seccomp
+filter (seccomp.py). It then serves one harness runtime's package code
 over the channel socket the host passed with the request (services/harness/sandbox/codec.py).
 Nothing here is imported by the host process.
 """
@@ -36,10 +38,8 @@ import subprocess  # noqa: E402,F401 - preloaded: a child cannot read modules fr
 
 import numpy as np  # noqa: E402
 
-from services.harness.sandbox import codec, seccomp  # noqa: E402
+from services.harness.sandbox import codec, seccomp, userns  # noqa: E402
 
-CLONE_NEWNET = 0x40000000
-CLONE_NEWUSER = 0x10000000
 PR_SET_PDEATHSIG = 1
 PR_SET_DUMPABLE = 4
 PR_SET_NO_NEW_PRIVS = 38
@@ -84,23 +84,24 @@ def _preload() -> None:
 
 
 def leave_network() -> str:
-    """Move this process into a new, empty network namespace: "" when done, else why not."""
-    if _libc.unshare(CLONE_NEWNET) == 0:
-        return ""
-    first = os.strerror(ctypes.get_errno())
-    if _libc.unshare(CLONE_NEWUSER | CLONE_NEWNET) == 0:
-        return ""
-    return f"unshare(CLONE_NEWNET) refused: {first}; with a user namespace: {os.strerror(ctypes.get_errno())}"
+    """Leave the host's network, and when not root enter a user namespace (userns.enter): "" when
+    the children get an empty network namespace, else why not."""
+    return userns.enter().network_degraded
 
 
 def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int, keep: tuple[int, ...],
          network_degraded: str) -> dict[str, Any]:
-    """Lock this (freshly forked) child in; returns what is enforced and what is degraded."""
+    """Lock this (freshly forked) child in; returns what is enforced and what is degraded.
+
+    How depends on the zygote's mode (services/harness/sandbox/userns.py): as root, chroot and
+    uid/gid 65534; in a user namespace (a non-root host), a private root (pivot_root) and no
+    capabilities; degraded, neither."""
     degraded: list[str] = []
     base_as = _vm_size()  # before the chroot hides /proc
     if network_degraded:
         degraded.append("network: " + network_degraded)
-    root = os.geteuid() == 0
+    iso = userns.current()
+    root = iso.mode == "root"
     scratch = os.path.join(scratch_base, f"c{os.getpid()}")
     os.mkdir(scratch, 0o700)
     if root:
@@ -116,14 +117,17 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
                 os.close(fd)
             except OSError:
                 pass
-    chrooted = False
+    filesystem = ""
     if root:
         os.chroot(scratch)
         os.chdir("/")
-        chrooted = True
+        filesystem = "chroot"
+    elif iso.mode == "userns":
+        filesystem = userns.private_root(scratch)
     else:
         os.chdir(scratch)
-        degraded.append("filesystem: not root, so no chroot and no change of user; the child keeps the host's uid")
+        degraded.append("filesystem: not root and no user namespace, so no private root and no change of user; "
+                        f"the child keeps the host's uid (user namespace: {iso.userns_refused})")
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # an oversized write fails with EFBIG instead of killing
     limits = {
         resource.RLIMIT_AS: base_as + memory_mb * (1 << 20),
@@ -138,6 +142,8 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
         os.setgroups([])
         os.setgid(NOBODY)
         os.setuid(NOBODY)
+    elif iso.mode == "userns":
+        userns.drop_capabilities()  # uid and gid are 65534 already: the only ids mapped
     resource.setrlimit(resource.RLIMIT_NPROC, (0, 0))
     _prctl(PR_SET_NO_NEW_PRIVS, 1)
     _prctl(PR_SET_DUMPABLE, 0)
@@ -147,9 +153,10 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
     if filtered:
         degraded.append(filtered)
     return {
-        "uid": os.getuid(), "gid": os.getgid(), "chroot": chrooted, "network_isolated": not network_degraded,
-        "no_new_privs": True, "seccomp": not filtered, "memory_mb": memory_mb, "cpu_s": cpu_s, "nofile": nofile, "fsize": fsize,
-        "degraded": degraded, "scratch": scratch,
+        "mode": iso.mode, "uid": os.getuid(), "gid": os.getgid(), "outer_uid": iso.outer_uid if iso.mode == "userns" else os.getuid(),
+        "capabilities": userns.capabilities(), "chroot": bool(filesystem), "filesystem": filesystem,
+        "network_isolated": not network_degraded, "no_new_privs": True, "seccomp": not filtered,
+        "memory_mb": memory_mb, "cpu_s": cpu_s, "nofile": nofile, "fsize": fsize, "degraded": degraded, "scratch": scratch,
     }
 
 

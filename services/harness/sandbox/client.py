@@ -15,9 +15,11 @@ a private scratch directory as its root (chroot): nothing else of the file syste
 let alone writable; RLIMIT_NPROC 0 (no fork, no thread, no exec'd helper), RLIMIT_AS (memory),
 RLIMIT_CPU, RLIMIT_NOFILE, RLIMIT_FSIZE; a seccomp filter (services/harness/sandbox/seccomp.py:
 no socket, exec, namespace, ptrace, mount, bpf, perf, keyring or io_uring call, signals only to
-itself); killed when its zygote dies, the zygote when its host dies. When the host is not root or the kernel refuses a namespace, the child runs degraded and
-says so (:attr:`SandboxClient.isolation`, the ``zetta_harness_sandbox_isolation`` gauge, a
-warning in the log).
+itself); killed when its zygote dies, the zygote when its host dies. A host that is not root gets
+the same through a user namespace (services/harness/sandbox/userns.py: the child is 65534 inside
+without capabilities, pivot_root into its scratch dir); only when the kernel refuses that too does
+the child run degraded, and says so (:attr:`SandboxClient.isolation`, the
+``zetta_harness_sandbox_mode`` and ``zetta_harness_sandbox_isolation`` gauges, a warning in the log).
 
 Per step the host sends the new frame (the observation's arrays as one block of raw bytes, laid
 out by a LAYOUT message sent only when names, dtypes or shapes change, over a Unix socket;
@@ -520,7 +522,7 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
     """Once per process: the isolation the children get, in the log and as a gauge."""
     from prometheus_client import Gauge
 
-    global _GAUGE
+    global _GAUGE, _MODE_GAUGE
     key = repr(sorted((k, v) for k, v in report.items() if k != "scratch"))
     if key in _published:
         return
@@ -528,17 +530,34 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
     if _GAUGE is None:
         _GAUGE = Gauge("zetta_harness_sandbox_isolation",
                        "Isolation each harness sandbox child gets (1 enforced, 0 degraded), by feature.", ["feature"])
-    features = {"unprivileged_user": report.get("uid") == 65534, "network": bool(report.get("network_isolated")),
+        _MODE_GAUGE = Gauge("zetta_harness_sandbox_mode",
+                            "How harness sandbox children are isolated (1: this mode): root (a distinct uid), "
+                            "userns (a user namespace of a non-root host) or degraded.", ["mode"])
+    mode = str(report.get("mode", "root" if report.get("uid") == 65534 else "degraded"))
+    no_caps = report.get("capabilities") == 0
+    features = {"unprivileged_user": report.get("uid") == 65534 and (mode == "root" or no_caps),
+                "distinct_uid": mode == "root" and report.get("uid") == 65534,
+                "network": bool(report.get("network_isolated")),
                 "filesystem": bool(report.get("chroot")), "no_new_privs": bool(report.get("no_new_privs")),
                 "seccomp": bool(report.get("seccomp"))}
     for name, on in features.items():
         _GAUGE.labels(name).set(1.0 if on else 0.0)
+    assert _MODE_GAUGE is not None
+    for name in ("root", "userns", "degraded"):
+        _MODE_GAUGE.labels(name).set(1.0 if name == mode else 0.0)
     if report.get("degraded"):
-        log.warning("harness sandbox DEGRADED: %s", "; ".join(map(str, report["degraded"])))
-    else:
-        log.info("harness sandbox: uid %s, own empty network namespace, chroot to a private scratch dir, "
-                 "rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp filter", report.get("uid"), report.get("memory_mb"),
+        log.warning("harness sandbox DEGRADED (mode %s): %s", mode, "; ".join(map(str, report["degraded"])))
+    elif mode == "userns":
+        log.info("harness sandbox: mode userns (the host is not root): a user namespace where the child is uid %s "
+                 "without capabilities (the host's uid %s outside), own empty network namespace, private root "
+                 "(%s to its scratch dir), rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp filter",
+                 report.get("uid"), report.get("outer_uid"), report.get("filesystem"), report.get("memory_mb"),
                  report.get("cpu_s"), report.get("nofile"))
+    else:
+        log.info("harness sandbox: mode %s: uid %s, own empty network namespace, chroot to a private scratch dir, "
+                 "rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp filter", mode, report.get("uid"),
+                 report.get("memory_mb"), report.get("cpu_s"), report.get("nofile"))
 
 
 _GAUGE: Any = None
+_MODE_GAUGE: Any = None

@@ -1,0 +1,155 @@
+"""A harness sandbox host that is not root: tests/security/test_harness_sandbox_userns.py runs it.
+
+``python tests/security/sandbox_host_unprivileged.py [--drop=UID:GID] PARAMS_JSON``
+
+With ``--drop`` (the test runs as root) it first makes the interpreter reachable for that uid and
+then becomes it: the test's interpreter may live under a directory only root may enter (here the
+venv's Python is under /root, mode 0700). In a mount namespace of this process alone, the blocked
+directory is covered by a read-only, world-traversable tmpfs that holds a bind mount of the
+interpreter's tree; nothing changes for any other process, and the mounts are gone when this
+process tree exits. Then it drops every privilege (groups, gid, uid) and executes itself again.
+
+As the unprivileged user it starts a sandbox child the way the services do (SandboxClient), loads
+package code without the static checks (the kernel layer alone), runs every critic once and prints
+one line ``RESULT {json}``: the child's isolation report and pid, what each attempt got, the
+gauges and the sandbox log. It then waits for a line on stdin (the test inspects the child from
+outside meanwhile), closes the child and exits.
+
+``PARAMS_JSON``: ``params`` for the package (marker path, listener port, ...), ``source`` (the
+package's tools/attempts.py) and ``deny_userns`` (install a seccomp filter on this host that
+refuses ``unshare`` like a container runtime's default profile, to see the degraded mode).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import logging
+import os
+import stat
+import sys
+import tempfile
+
+CLONE_NEWNS = 0x00020000
+MS_RDONLY = 0x1
+MS_BIND = 0x1000
+MS_REC = 0x4000
+MS_PRIVATE = 1 << 18
+
+
+def _mount(libc: ctypes.CDLL, source: str | None, target: str, fstype: str | None, flags: int, data: str | None = None
+           ) -> None:
+    if libc.mount(source and source.encode(), target.encode(), fstype and fstype.encode(), ctypes.c_ulong(flags),
+                  data and data.encode()) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"mount {source} on {target}: {os.strerror(err)}")
+
+
+def _blocked(paths: list[str]) -> dict[str, set[str]]:
+    """Directories other users may not traverse on the way to ``paths``: {dir: {entries needed}}."""
+    out: dict[str, set[str]] = {}
+    for path in paths:
+        parts = os.path.realpath(path).split(os.sep)[1:]
+        for i in range(len(parts) - 1):
+            here = os.sep + os.sep.join(parts[:i + 1])
+            if not os.stat(here).st_mode & stat.S_IXOTH:
+                out.setdefault(here, set()).add(parts[i + 1])
+                break
+    return out
+
+
+def drop_to(uid: int, gid: int) -> None:
+    """Make the interpreter reachable for ``uid`` in a private mount namespace, become it, re-exec."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    needed = [sys.executable, sys.base_prefix, sys.prefix, *sys.path[1:]]
+    blocked = _blocked([p for p in needed if p and os.path.exists(p)])
+    if blocked:
+        if libc.unshare(CLONE_NEWNS) != 0:
+            raise OSError(ctypes.get_errno(), "unshare(CLONE_NEWNS)")
+        _mount(libc, None, "/", None, MS_REC | MS_PRIVATE)
+        for directory, entries in blocked.items():
+            holds = {}
+            for entry in entries:
+                hold = tempfile.mkdtemp(prefix="zetta-userns-hold-")
+                _mount(libc, os.path.join(directory, entry), hold, None, MS_BIND | MS_REC)
+                holds[entry] = hold
+            _mount(libc, "tmpfs", directory, "tmpfs", 0, "mode=0755,size=64k")
+            for entry, hold in holds.items():
+                target = os.path.join(directory, entry)
+                os.mkdir(target, 0o755)
+                _mount(libc, hold, target, None, MS_BIND | MS_REC)
+            _mount(libc, None, directory, None, 0x20 | MS_RDONLY)  # MS_REMOUNT: read-only
+    os.setgroups([])
+    os.setgid(gid)
+    os.setuid(uid)
+    args = [a for a in sys.argv[1:] if not a.startswith("--drop")]
+    os.execv(sys.executable, [sys.executable, sys.argv[0], *args])
+
+
+def _deny_unshare() -> None:
+    """A seccomp filter on this host refusing unshare (EPERM), as a runtime's default profile does."""
+    import struct
+
+    from services.harness.sandbox import seccomp
+
+    insn = struct.Struct("<HBBI")
+    prog = b"".join([
+        insn.pack(seccomp.LD_W_ABS, 0, 0, seccomp.OFF_NR),
+        insn.pack(seccomp.JEQ_K, 0, 1, seccomp.X86_64["unshare"]),
+        insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ERRNO | 1),
+        insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ALLOW),
+    ])
+    buf = ctypes.create_string_buffer(prog, len(prog))
+    fprog = seccomp._SockFprog(len(prog) // insn.size, ctypes.cast(buf, ctypes.c_void_p))
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(38, 1, 0, 0, 0) != 0 or libc.prctl(seccomp.PR_SET_SECCOMP, ctypes.c_ulong(seccomp.SECCOMP_MODE_FILTER),
+                                                      ctypes.byref(fprog), 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "could not install the test's seccomp filter")
+
+
+def main(spec: dict) -> None:
+    import numpy as np
+    from prometheus_client import REGISTRY
+
+    from services.harness.sandbox.client import SandboxClient
+
+    records: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(f"{record.levelname} {record.getMessage()}")
+
+    logger = logging.getLogger("zetta.harness.sandbox")
+    logger.addHandler(Keep())
+    logger.setLevel(logging.INFO)
+    if spec.get("deny_userns"):
+        _deny_unshare()
+    params = dict(spec["params"], host_pid=os.getpid())
+    child = SandboxClient()
+    loaded = child.load(4, {"attempts": spec["source"]}, {"attempts": params}, checked=False)
+    child.start("", [])
+    results = child.step(0, {"robot0_eef_pos": np.zeros(3)}, None, frozenset(),
+                         [(i, False) for i in range(len(loaded.critics))], lambda i: 5.0)
+    out = {}
+    for name, res in zip(loaded.critics, results):
+        out[name.removeprefix("attempts.")] = list(res.proposal) if res.proposal is not None else ["error", "", {
+            "error": res.error}]
+    gauges = {
+        "mode": {m: REGISTRY.get_sample_value("zetta_harness_sandbox_mode", {"mode": m}) for m in
+                 ("root", "userns", "degraded")},
+        "isolation": {f: REGISTRY.get_sample_value("zetta_harness_sandbox_isolation", {"feature": f}) for f in
+                      ("unprivileged_user", "distinct_uid", "network", "filesystem", "no_new_privs", "seccomp")},
+    }
+    report = {"host": {"uid": os.getuid(), "gid": os.getgid(), "pid": os.getpid()}, "pid": child.pid,
+              "isolation": {k: v for k, v in child.isolation.items()}, "results": out, "gauges": gauges, "log": records}
+    print("RESULT " + json.dumps(report, default=str), flush=True)
+    sys.stdin.readline()
+    child.close()
+
+
+if __name__ == "__main__":
+    drop = [a for a in sys.argv[1:] if a.startswith("--drop")]
+    if drop:
+        uid, gid = (int(x) for x in drop[0].split("=", 1)[1].split(":"))
+        drop_to(uid, gid)
+    main(json.loads(sys.argv[-1]))
