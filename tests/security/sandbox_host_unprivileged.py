@@ -16,8 +16,9 @@ gauges and the sandbox log. It then waits for a line on stdin (the test inspects
 outside meanwhile), closes the child and exits.
 
 ``PARAMS_JSON``: ``params`` for the package (marker path, listener port, ...), ``source`` (the
-package's tools/attempts.py) and ``deny_userns`` (install a seccomp filter on this host that
-refuses ``unshare`` like a container runtime's default profile, to see the degraded mode).
+package's tools/attempts.py), ``deny_userns`` (a seccomp filter on this host that refuses
+``unshare`` and ``mount`` as a container runtime's default profile does: the degraded mode) and
+``host_profile`` (the same with the deny list of deploy/seccomp/zetta-sandbox-host.json).
 """
 
 from __future__ import annotations
@@ -86,21 +87,21 @@ def drop_to(uid: int, gid: int) -> None:
     os.execv(sys.executable, [sys.executable, sys.argv[0], *args])
 
 
-def _deny_unshare() -> None:
-    """A seccomp filter on this host refusing unshare (EPERM), as a runtime's default profile does."""
+def _install_filter(names: list[str]) -> None:
+    """A seccomp filter on this host (inherited by the zygote and its children) that refuses
+    ``names`` with EPERM and allows everything else, as a container runtime applies a profile."""
     import struct
 
     from services.harness.sandbox import seccomp
 
     insn = struct.Struct("<HBBI")
-    prog = b"".join([
-        insn.pack(seccomp.LD_W_ABS, 0, 0, seccomp.OFF_NR),
-        insn.pack(seccomp.JEQ_K, 0, 1, seccomp.X86_64["unshare"]),
-        insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ERRNO | 1),
-        insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ALLOW),
-    ])
-    buf = ctypes.create_string_buffer(prog, len(prog))
-    fprog = seccomp._SockFprog(len(prog) // insn.size, ctypes.cast(buf, ctypes.c_void_p))
+    n = len(names)
+    prog = [insn.pack(seccomp.LD_W_ABS, 0, 0, seccomp.OFF_NR)]
+    prog += [insn.pack(seccomp.JEQ_K, n - i, 0, seccomp.X86_64[name]) for i, name in enumerate(names)]
+    prog += [insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ALLOW), insn.pack(seccomp.RET_K, 0, 0, seccomp.RET_ERRNO | 1)]
+    code = b"".join(prog)
+    buf = ctypes.create_string_buffer(code, len(code))
+    fprog = seccomp._SockFprog(len(prog), ctypes.cast(buf, ctypes.c_void_p))
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(38, 1, 0, 0, 0) != 0 or libc.prctl(seccomp.PR_SET_SECCOMP, ctypes.c_ulong(seccomp.SECCOMP_MODE_FILTER),
                                                       ctypes.byref(fprog), 0, 0) != 0:
@@ -122,8 +123,13 @@ def main(spec: dict) -> None:
     logger = logging.getLogger("zetta.harness.sandbox")
     logger.addHandler(Keep())
     logger.setLevel(logging.INFO)
-    if spec.get("deny_userns"):
-        _deny_unshare()
+    if spec.get("deny_userns"):  # what the runtimes' default profiles do to a container without CAP_SYS_ADMIN
+        _install_filter(["unshare", "mount", "umount2", "pivot_root", "setns"])
+    if spec.get("host_profile"):  # the profile deploy/ ships for the sandbox hosts
+        with open(spec["host_profile"]) as f:
+            rules = json.load(f)
+        assert rules["defaultAction"] == "SCMP_ACT_ALLOW" and len(rules["syscalls"]) == 1
+        _install_filter(rules["syscalls"][0]["names"])
     params = dict(spec["params"], host_pid=os.getpid())
     child = SandboxClient()
     loaded = child.load(4, {"attempts": spec["source"]}, {"attempts": params}, checked=False)

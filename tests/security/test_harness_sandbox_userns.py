@@ -379,3 +379,32 @@ def test_without_user_namespaces_a_non_root_host_runs_degraded_and_says_so(targe
         host.finish()
     with pytest.raises(socket.timeout):
         tcp.accept()
+
+
+def test_the_shipped_host_profile_lets_the_user_namespace_through(targets) -> None:
+    """deploy/seccomp/zetta-sandbox-host.json (the env worker's, critic's and evolver's container
+    profile in deploy/) on the host: the children still get the user namespace, and package code
+    still gets EPERM from its own filter for what the profile lets the host do."""
+    why = _userns_possible()
+    if why:
+        pytest.skip(why)
+    params, _shared, _tcp, _unix = targets
+    profile = ROOT / "deploy" / "seccomp" / "zetta-sandbox-host.json"
+    host = Host({"params": params, "source": ATTEMPTS, "host_profile": str(profile)})
+    try:
+        iso = host.report["isolation"]
+        assert iso["mode"] == "userns" and iso["degraded"] == [] and iso["filesystem"] == "pivot_root", iso
+        out = host.report["results"]
+        for attempt in ("unshare_user", "mount", "chroot"):
+            assert "EPERM" in out[attempt][0], (attempt, out[attempt])
+    finally:
+        host.finish()
+
+
+def test_the_host_profile_is_generated_from_the_sandbox_filter() -> None:
+    check = subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_seccomp_profile.py"), "--check"],
+                           capture_output=True, text=True)
+    assert check.returncode == 0, check.stderr
+    names = set(json.loads((ROOT / "deploy" / "seccomp" / "zetta-sandbox-host.json").read_text())["syscalls"][0]["names"])
+    assert not names & {"unshare", "mount", "umount2", "pivot_root", "chroot", "clone", "socket", "kill"}
+    assert {"ptrace", "kexec_load", "bpf", "init_module", "setns", "keyctl"} <= names
