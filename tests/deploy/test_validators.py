@@ -44,6 +44,10 @@ SETUP_HINT = "run `make setup` (deploy/tools/install-validators.sh installs it a
 #: schema kubernetes-validate ships (its default).
 K8S_VERSIONS = ["1.28.0", None]
 ZETTA_COMPONENTS = {"gateway", "env-worker", "policy-worker"}
+#: The services that run harness package code in sandbox children, and their container seccomp
+#: profile (scripts/gen_seccomp_profile.py).
+SANDBOX_HOSTS = {"env-worker", "critic", "evolver"}
+SANDBOX_PROFILE = DEPLOY / "seccomp" / "zetta-sandbox-host.json"
 
 
 def need(name: str) -> str:
@@ -189,6 +193,9 @@ def test_compose_services_are_hardened_and_limited() -> None:
         image = svc["image"]
         assert ":" in image and not image.endswith(":latest"), image
         assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
+        if (svc.get("build") or {}).get("target") in SANDBOX_HOSTS:
+            opts = svc.get("security_opt", [])
+            assert "no-new-privileges:true" in opts and "seccomp=unconfined" in opts, name
         if (svc.get("build") or {}).get("target"):
             env = {**image_config(svc["build"]["target"]).env, **environment(svc)}
             assert f"{svc.get('hostname', name)}:{env['ZETTA_METRICS_PORT']}" in targets, f"{name} is not scraped"
@@ -312,6 +319,15 @@ def test_kubernetes_manifests_follow_the_rules(overlay: Path) -> None:
                 assert env["ZETTA_METRICS_PORT"]["value"] == str(ports["metrics"]), name
                 mounts = {m["mountPath"] for m in c.get("volumeMounts", [])}
                 assert "/tmp" in mounts, f"{name}: read-only root needs a writable /tmp"
+    # The harness sandbox hosts run their containers under the profile that lets the user-namespace
+    # set-up through (docs/security.md); every other container keeps the pod's RuntimeDefault.
+    for name, dep in deployments.items():
+        for c in dep["spec"]["template"]["spec"]["containers"]:
+            profile = c["securityContext"].get("seccompProfile")
+            if name in SANDBOX_HOSTS:
+                assert profile == {"type": "Localhost", "localhostProfile": SANDBOX_PROFILE.name}, name
+            else:
+                assert profile is None, name
     env_worker = {e["name"]: e for e in deployments["env-worker"]["spec"]["template"]["spec"]["containers"][0]["env"]}
     assert env_worker["POD_IP"]["valueFrom"]["fieldRef"]["fieldPath"] == "status.podIP"
     assert env_worker["ZETTA_ADVERTISE_ADDRESS"]["value"] == "$(POD_IP):50061"
