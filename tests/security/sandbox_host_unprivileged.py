@@ -79,6 +79,8 @@ def drop_to(uid: int, gid: int) -> None:
                 target = os.path.join(directory, entry)
                 os.mkdir(target, 0o755)
                 _mount(libc, hold, target, None, MS_BIND | MS_REC)
+                libc.umount2(hold.encode(), 2)  # MNT_DETACH: the bind on target stays
+                os.rmdir(hold)
             _mount(libc, None, directory, None, 0x20 | MS_RDONLY)  # MS_REMOUNT: read-only
     os.setgroups([])
     os.setgid(gid)

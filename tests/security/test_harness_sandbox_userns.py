@@ -103,7 +103,7 @@ def critic_write_marker(window, params):
 
 def critic_write_tmp(window, params):
     def write():
-        with open("/tmp/zetta-userns-escape", "w") as f:
+        with open(params["tmp_marker"], "w") as f:
             f.write("x")
     return _try("write_tmp", write)
 
@@ -244,7 +244,7 @@ def targets():
     unix.listen()
     unix.settimeout(0.5)
     yield {"marker": str(shared / "marker"), "port": tcp.getsockname()[1], "unix": unix_path,
-           "repo_file": str(ROOT / "pyproject.toml")}, shared, tcp, unix
+           "repo_file": str(ROOT / "pyproject.toml"), "tmp_marker": f"/tmp/{shared.name}-escape"}, shared, tcp, unix
     tcp.close()
     unix.close()
     shutil.rmtree(shared, ignore_errors=True)
@@ -322,7 +322,7 @@ def test_a_non_root_host_isolates_package_code_through_a_user_namespace(targets)
     finally:
         host.finish()  # the host is alive (kill(-1) and the SIGTERM did not reach it) and exits cleanly
     assert sorted(p.name for p in shared.iterdir()) == ["listener.sock"]
-    assert not Path("/tmp/zetta-userns-escape").exists()
+    assert not Path(params["tmp_marker"]).exists()
     for listener in (tcp, unix):
         with pytest.raises(socket.timeout):
             listener.accept()
