@@ -62,6 +62,12 @@ class Watchdog:
 
     def release(self, w: _Watch) -> None:
         """The call returned: never interrupt it, and cancel an interruption not yet delivered."""
+        w.done = True
+        # Before its deadline the watchdog cannot have fired: it fires only after reading a clock
+        # past the deadline, and then finds ``done`` set (it was set before this clock read), so
+        # no lock is needed on that path (one per critic per env step).
+        if not w.fired and time.perf_counter() < w.deadline:
+            return
         with self._lock:
             w.done = True
             if w.fired:

@@ -105,18 +105,30 @@ class Perception:
         self._scale = 1.0 + self._rng.normal(0.0, model.size_noise, 3)
 
     def sensor(self, exact: Mapping[str, np.ndarray]) -> Sensor:
-        """The tool for one frame, reading ``exact`` (the simulator's tensors) behind a closure."""
+        """The tool for one frame, reading ``exact`` (the simulator's tensors) behind a closure.
+
+        (Runs at every env step: the arithmetic is on Python floats, in the order of the array
+        expressions it stands for, so the estimates are the same to the bit; the draws from the
+        episode's generator are the same and in the same order.)"""
         cache: dict[str, Detection | list[Detection] | None] = {}
         rng, model = self._rng, self.model
-        bias, scale = self._bias, self._scale
+        normal, random, noise_m = rng.normal, rng.random, model.noise_m
+        bx, by, bz = self._bias.tolist()
+        sx, sy, sz = self._scale.tolist()
+        array = np.array
 
-        def estimate(box: np.ndarray, centre: np.ndarray | None = None) -> Detection:
-            c = (box[:3] + box[3:]) / 2 if centre is None else centre
-            half = (box[3:] - box[:3]) / 2 * scale
-            pos = c + bias + rng.normal(0.0, model.noise_m, 3)
-            return Detection(pos, np.concatenate([pos - half, pos + half]))
+        def estimate(box: list[float], centre: list[float] | None = None) -> Detection:
+            x0, y0, z0, x1, y1, z1 = box
+            if centre is None:
+                cx, cy, cz = (x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2
+            else:
+                cx, cy, cz = centre
+            hx, hy, hz = (x1 - x0) / 2 * sx, (y1 - y0) / 2 * sy, (z1 - z0) / 2 * sz
+            nx, ny, nz = normal(0.0, noise_m, 3).tolist()
+            px, py, pz = cx + bx + nx, cy + by + ny, cz + bz + nz
+            return Detection(array((px, py, pz)), array((px - hx, py - hy, pz - hz, px + hx, py + hy, pz + hz)))
 
-        def others() -> list[np.ndarray]:
+        def others() -> list[list[float]]:
             state = exact.get("object_state")
             if state is None:
                 return []
@@ -126,23 +138,22 @@ class Perception:
             obj = exact.get("task_object_pos")
             if obj is not None and np.any(obj):
                 pos = pos[np.linalg.norm(pos - np.asarray(obj, dtype=np.float64), axis=1) > 0.02]
-            return list(pos)
+            return pos.tolist()
 
         def perceive(query: str) -> Detection | list[Detection] | None:
-            if query not in QUERIES:
-                raise ValueError(f"perceive({query!r}): queries are {', '.join(QUERIES)}")
             if query in cache:
                 return cache[query]
+            if query not in QUERIES:
+                raise ValueError(f"perceive({query!r}): queries are {', '.join(QUERIES)}")
             found: Detection | list[Detection] | None
             if query == "others":
-                found = [estimate(np.concatenate([p, p])) for p in others() if rng.random() >= model.dropout]
+                found = [estimate(p + p, p) for p in others() if random() >= model.dropout]
             else:
-                box = exact.get(f"task_{query}_bbox")
-                box = None if box is None else np.asarray(box, dtype=np.float64)
-                if box is None or not np.any(box) or rng.random() < model.dropout:
+                raw = exact.get(f"task_{query}_bbox")
+                box = None if raw is None else np.asarray(raw, dtype=np.float64).tolist()
+                if box is None or not any(box) or random() < model.dropout:
                     found = None
-                elif query == "object" and rng.random() < model.confusion and others():
-                    pool = others()
+                elif query == "object" and random() < model.confusion and (pool := others()):
                     found = estimate(box, pool[int(rng.integers(len(pool)))])
                 else:
                     found = estimate(box)

@@ -41,24 +41,20 @@ def allowed(name: str) -> bool:
     return name in ALLOWED or any(p.match(name) for p in ALLOWED_PATTERNS)
 
 
-#: allowed() by name, for the names observations carry (a few dozen per family): every env step
-#: filters its observation, and the patterns cost more than the lookup.
-_ALLOWED_CACHE: dict[str, bool] = {}
+#: The names a harness may read, in order, by the names an observation carries (a few key sets
+#: per family): every env step filters its observation, and the patterns cost more than a lookup.
+_VISIBLE: dict[tuple[str, ...], tuple[str, ...]] = {}
 
 
 def visible(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The part of an observation a harness sees."""
-    cache = _ALLOWED_CACHE
-    out = {}
-    for k, v in obs.items():
-        ok = cache.get(k)
-        if ok is None:
-            ok = allowed(k)
-            if len(cache) < 4096:
-                cache[k] = ok
-        if ok:
-            out[k] = v
-    return out
+    names = tuple(obs)
+    keep = _VISIBLE.get(names)
+    if keep is None:
+        keep = tuple(k for k in names if allowed(k))
+        if len(_VISIBLE) < 256:
+            _VISIBLE[names] = keep
+    return {k: obs[k] for k in keep}
 
 
 def denied_reads(names: Iterable[str]) -> list[str]:

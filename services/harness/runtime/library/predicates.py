@@ -11,7 +11,7 @@ constant, so a critic built from them transfers by rebinding. Their parameters a
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -52,10 +52,11 @@ def grasp_lost(w: Window, p: Mapping[str, float]) -> Details:
     frames = w.frames
     if len(frames) < confirm + min_held:
         return None
-    if any(t.grasped(f) for f in frames[-confirm:]):
+    grasped = t.grasped
+    if any(grasped(f) for f in frames[-confirm:]) or t.gripper_command(w.now.action) <= 0.0:
         return None
-    held = sum(1 for f in frames[:-confirm] if t.grasped(f))
-    if held < min_held or t.gripper_command(w.now.action) <= 0.0:
+    held = sum(1 for f in frames[:-confirm] if grasped(f))
+    if held < min_held:
         return None
     return {"held_steps": float(held), "steps_since": float(confirm),
             "eef_object_dist": t.eef_object_dist(w.now) or 0.0}
@@ -65,9 +66,13 @@ def failed_acquisition(w: Window, p: Mapping[str, float]) -> Details:
     """The gripper closed near the object without holding it: fingers nearly shut, no grasp, the
     grip site within ``near`` of the object's box."""
     now = w.now
+    if t.grasped(now):
+        return None
     aperture = t.scalar(now, "phi_gripper_aperture")
+    if aperture > p["closed_gap"]:
+        return None
     dist = t.eef_object_dist(now)
-    if t.grasped(now) or aperture > p["closed_gap"] or dist is None or dist > p["near"]:
+    if dist is None or dist > p["near"]:
         return None
     return {"aperture": aperture, "eef_object_dist": dist}
 
@@ -80,7 +85,7 @@ def stalled_progress(w: Window, p: Mapping[str, float]) -> Details:
     n, first, now = back
     if now.milestones - first.milestones:
         return None
-    if float(np.linalg.norm(t.vec(now, "robot0_eef_pos") - t.vec(first, "robot0_eef_pos"))) >= p["min_motion"]:
+    if t.distance(t.vec(first, "robot0_eef_pos"), t.vec(now, "robot0_eef_pos")) >= p["min_motion"]:
         return None  # the straight distance bounds the path from below: no need to sum it
     track = np.array([f.obs["robot0_eef_pos"] for f in w.frames[-n:]], dtype=np.float64)
     path = float(np.linalg.norm(np.diff(track, axis=0), axis=1).sum())
@@ -118,7 +123,7 @@ def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
     h0, h1 = t.object_pos(first), t.object_pos(now)
     if d0 is None or d1 is None or h0 is None or h1 is None:
         return None
-    approach, moved = d0 - d1, float(np.linalg.norm(h1 - h0))
+    approach, moved = d0 - d1, t.distance(h0, h1)
     if approach >= p["min_approach"] or moved >= p["min_progress"]:
         return None
     return {"approach": approach, "handle_motion": moved, "eef_handle_dist": d1, "steps": float(n)}
@@ -134,8 +139,8 @@ def approach_wrong_object(w: Window, p: Mapping[str, float]) -> Details:
     if obj is None or obj0 is None:
         return None
     eef, eef0 = t.vec(now, "robot0_eef_pos"), t.vec(first, "robot0_eef_pos")
-    task_dist = float(np.linalg.norm(obj - eef))
-    if float(np.linalg.norm(obj0 - eef0)) - task_dist >= p["min_gain"]:
+    task_dist = t.distance(eef, obj)
+    if t.distance(eef0, obj0) - task_dist >= p["min_gain"]:
         return None  # closing in on the task object itself
     others = t.other_object_positions(now)
     others = others[np.linalg.norm(others - obj, axis=1) > p["separation"]] if len(others) else others
@@ -167,7 +172,7 @@ def held_near_target(w: Window, p: Mapping[str, float]) -> Details:
     obj, target = t.object_box(now), t.target_box(now)
     if not (t.has_box(obj) and t.has_box(target)):
         return None
-    horizontal = float(np.linalg.norm(t.box_center(obj)[:2] - t.box_center(target)[:2]))
+    horizontal = _horizontal(obj, target)
     height = float(obj[2] - target[5])
     if horizontal > p["radius"] or height < -p["below"]:
         return None
@@ -186,9 +191,7 @@ def held_stalled_transport(w: Window, p: Mapping[str, float]) -> Details:
     obj0 = t.object_box(first)
     if not (t.has_box(obj) and t.has_box(target) and t.has_box(obj0)):
         return None
-    tc = t.box_center(target)[:2]
-    d_now = float(np.linalg.norm(t.box_center(obj)[:2] - tc))
-    d_before = float(np.linalg.norm(t.box_center(obj0)[:2] - tc))
+    d_now, d_before = _horizontal(obj, target), _horizontal(obj0, target)
     if d_now <= p["near"] or d_before - d_now >= p["min_gain"]:
         return None
     return {"target_dist": d_now, "gain": d_before - d_now, "steps": float(n)}
@@ -202,12 +205,13 @@ def supported_placement(w: Window, p: Mapping[str, float]) -> Details:
     obj, target = t.object_box(now), t.target_box(now)
     if not (t.has_box(obj) and t.has_box(target)):
         return None
-    height = float(obj[2] - target[5])
+    o, g = obj.tolist(), target.tolist()
+    height = o[2] - g[5]
     if height > p["gap"]:
         return None
-    cx, cy = (obj[0] + obj[3]) / 2, (obj[1] + obj[4]) / 2
+    cx, cy = (o[0] + o[3]) / 2, (o[1] + o[4]) / 2
     inset = p["inset"]
-    if not (target[0] + inset <= cx <= target[3] - inset and target[1] + inset <= cy <= target[4] - inset):
+    if not (g[0] + inset <= cx <= g[3] - inset and g[1] + inset <= cy <= g[4] - inset):
         return None
     speed = t.object_speed(w.frames, int(p["speed_frames"]))
     if speed > p["max_speed"]:
@@ -223,13 +227,38 @@ def blocked_motion(w: Window, p: Mapping[str, float]) -> Details:
     n = back[0]
     if len(t.vec(w.now, "phi_eef_motion")) < 6:
         return None
-    motion = np.array([f.obs["phi_eef_motion"] for f in w.frames[-n:]], dtype=np.float64)
-    commanded = float(np.linalg.norm(motion[:, :3], axis=1).sum())
-    realized = float(np.linalg.norm(motion[:, 3:6], axis=1).sum())
+    commanded, realized = _motion(w.frames[-n:])
     if commanded < p["min_command"] or realized > p["ratio"] * commanded:
         return None
     return {"commanded": commanded, "realized": realized,
             "collision": t.scalar(w.now, "phi_collision_intensity")}
+
+
+def _horizontal(a: np.ndarray, b: np.ndarray) -> float:
+    """Horizontal distance between the centres of two boxes (the hot path of the placement critics:
+    float arithmetic rather than a dozen small numpy calls)."""
+    p, q = a.tolist(), b.tolist()
+    if len(p) != 6 or len(q) != 6:
+        return float(np.linalg.norm(t.box_center(a)[:2] - t.box_center(b)[:2]))
+    dx, dy = (p[0] + p[3]) / 2 - (q[0] + q[3]) / 2, (p[1] + p[4]) / 2 - (q[1] + q[4]) / 2
+    return math.sqrt(dx * dx + dy * dy)
+
+
+def _motion(frames: Sequence[Frame]) -> tuple[float, float]:
+    """Summed commanded and realized hand path (m) over ``frames`` (``phi_eef_motion``: commanded
+    translation, then realized)."""
+    commanded = realized = 0.0
+    sqrt = math.sqrt
+    for f in frames:
+        m = f.obs["phi_eef_motion"]
+        if len(m) < 6:  # as the array version: every frame's must have six numbers
+            motion = np.array([g.obs["phi_eef_motion"] for g in frames], dtype=np.float64)
+            return (float(np.linalg.norm(motion[:, :3], axis=1).sum()),
+                    float(np.linalg.norm(motion[:, 3:6], axis=1).sum()))
+        a, b, c, x, y, z = m[:6].tolist()
+        commanded += sqrt(a * a + b * b + c * c)
+        realized += sqrt(x * x + y * y + z * z)
+    return commanded, realized
 
 
 def contact_stability(w: Window, p: Mapping[str, float]) -> float:

@@ -12,6 +12,7 @@ integrates its command).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -80,19 +81,35 @@ def box_center(box: np.ndarray) -> np.ndarray:
 
 def has_box(box: np.ndarray) -> bool:
     """Whether a box is bound (zeros when nothing was detected)."""
+    if box is _NO_BOX:
+        return False
+    if type(box) is np.ndarray and box.ndim == 1:
+        return any(box.tolist())  # (a Python loop over six floats: cheaper than np.any)
     return bool(np.any(box))
+
+
+def _floats(a: object, n: int) -> list[float] | None:
+    """``a`` as a list of ``n`` Python floats, None when it has another shape."""
+    values = a.tolist() if type(a) is np.ndarray else np.asarray(a, dtype=np.float64).tolist()
+    return values if type(values) is list and len(values) == n and type(values[0]) is not list else None
 
 
 def box_distance(point: np.ndarray, box: np.ndarray) -> float:
     """Distance (m) from a point to a box, 0 inside it."""
-    gap = np.maximum(np.maximum(box[:3] - point, point - box[3:]), 0.0)
-    return float(np.linalg.norm(gap))
+    p, b = _floats(point, 3), _floats(box, 6)
+    if p is None or b is None:
+        gap = np.maximum(np.maximum(box[:3] - point, point - box[3:]), 0.0)
+        return float(np.linalg.norm(gap))
+    # Per-step hot path (every distance-based critic): float arithmetic, not six numpy calls.
+    x, y, z = p
+    gx, gy, gz = max(b[0] - x, x - b[3], 0.0), max(b[1] - y, y - b[4], 0.0), max(b[2] - z, z - b[5], 0.0)
+    return math.sqrt(gx * gx + gy * gy + gz * gz)
 
 
 def eef_object_dist(frame: Frame) -> float | None:
     """Distance (m) from the grip site to the estimated object box; None when not detected."""
     box = object_box(frame)
-    return box_distance(np.asarray(vec(frame, "robot0_eef_pos"), dtype=np.float64), box) if has_box(box) else None
+    return box_distance(vec(frame, "robot0_eef_pos"), box) if has_box(box) else None
 
 
 def object_speed(frames: Sequence[Frame], horizon: int) -> float:
@@ -103,12 +120,22 @@ def object_speed(frames: Sequence[Frame], horizon: int) -> float:
     a, b = object_pos(frames[-n - 1]), object_pos(frames[-1])
     if a is None or b is None:
         return 0.0
-    return float(np.linalg.norm(b - a)) / (n * STEP_S)
+    return distance(a, b) / (n * STEP_S)
+
+
+def distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Euclidean distance between two points (float arithmetic for 3-vectors)."""
+    p, q = _floats(a, 3), _floats(b, 3)
+    if p is None or q is None:
+        return float(np.linalg.norm(np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)))
+    dx, dy, dz = q[0] - p[0], q[1] - p[1], q[2] - p[2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 def grasped(frame: Frame) -> bool:
     """The grasp predicate (both fingers touch the task object)."""
-    return scalar(frame, "phi_grasp") > 0.5
+    value = frame.obs.get("phi_grasp")
+    return value is not None and len(value) > 0 and float(value[0]) > 0.5
 
 
 def gripper_command(action: np.ndarray | None) -> float:
