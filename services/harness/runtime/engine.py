@@ -459,43 +459,49 @@ class HarnessRuntime:
             if result is not None:
                 found[i] = result
         if self._code is not None and (remote or self._remote_plans):
-            self._run_remote(remote, found)
+            self._run_remote(remote, found, window.frames)
         out = tuple(found[i] for i in sorted(found))
         self.report.proposals += len(out)
         return out
 
-    def _run_remote(self, remote: dict[int, tuple[int, Critic]], found: dict[int, Proposal]) -> None:
+    def _run_remote(self, remote: dict[int, tuple[int, Critic]], found: dict[int, Proposal],
+                    frames: Sequence[Frame]) -> None:
         """The package's critics, in the sandbox child: one round trip per step for all of them."""
         assert self._code is not None
-        runs = [(r, c.budget.suspect) for r, (_, c) in remote.items()]
+        runs = []
+        cap = 2.0  # the whole step may take the sum of the critics' hard limits plus 2 s
+        for r, (_, c) in remote.items():
+            runs.append((r, c.budget.suspect))
+            cap += c.budget.hard_limit_s
 
         def hard_limit(r: int) -> float:
             hit = remote.get(r)
             return hit[1].budget.hard_limit_s if hit is not None else self.hard_limit_s
 
         try:
-            results = self._code.step(tuple(self._frames), runs, hard_limit)
+            results = self._code.step(frames, runs, hard_limit, cap)
         except (SandboxError, CallFailed) as exc:
             hit = remote.get(exc.index) if isinstance(exc, SandboxError) else None
             for _, critic in [hit] if hit is not None else list(remote.values()):
                 self._disable(critic, str(exc))
             return
-        for res in results:
-            i, critic = remote[res.index]
+        R_ERROR, R_PROPOSAL = sandbox_codec.R_ERROR, sandbox_codec.R_PROPOSAL
+        for index, kind, elapsed, proposal, error in results:
+            i, critic = remote[index]
             budget = critic.budget
-            if res.kind == sandbox_codec.R_ERROR:
-                self._disable(critic, res.error)
+            if kind == R_ERROR:
+                self._disable(critic, error)
                 continue
-            if res.elapsed_s > budget.budget_s:
+            if elapsed > budget.budget_s:
                 if budget.suspect:
-                    self._disable(critic, f"used {res.elapsed_s * 1000:.1f} ms of CPU, over its "
+                    self._disable(critic, f"used {elapsed * 1000:.1f} ms of CPU, over its "
                                           f"{budget.budget_s * 1000:.1f} ms budget")
                     continue
                 budget.suspect = True
             else:
                 budget.suspect = False
-            if res.kind == sandbox_codec.R_PROPOSAL:
-                found[i] = to_proposal(critic.name, res)
+            if kind == R_PROPOSAL:
+                found[i] = to_proposal(critic.name, proposal)
 
     def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]
                ) -> np.ndarray | PolicyUnder | None:

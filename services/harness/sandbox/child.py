@@ -224,7 +224,13 @@ class Host:
     """A child's state: the package's critics and recoveries, the window, the episode."""
 
     def __init__(self, chan: Channel, cell: mmap.mmap) -> None:
+        from services.harness.runtime import api
         from services.harness.runtime.library import EpisodeMemory
+        from services.harness.runtime.perception import QUERIES
+
+        # Resolved once (an import statement per step costs a dictionary walk each time).
+        self._Frame, self._Window, self._Detection, self._Proposal = api.Frame, api.Window, api.Detection, api.Proposal
+        self._queries = tuple(enumerate(QUERIES))
 
         self.chan = chan
         self.cell = cell
@@ -342,17 +348,13 @@ class Host:
         return b""
 
     def _frame(self, r: codec.Reader) -> tuple[int, dict[str, Any]]:
-        from services.harness.runtime.api import Frame
-
         step, obs, action, milestones = self.frames.decode(r)
         cache: dict[str, Any] = {}
-        self.window.append(Frame(step, obs, action, milestones, self._sensor(step, cache)))
+        self.window.append(self._Frame(step, obs, action, milestones, self._sensor(step, cache)))
         return step, cache
 
     def _sensor(self, step: int, cache: dict[str, Any]) -> Callable[[str], Any]:
-        from services.harness.runtime.api import Detection
-
-        chan, asked = self.chan, self.asked
+        chan, asked, Detection = self.chan, self.asked, self._Detection
 
         def perceive(query: str) -> Any:
             if not isinstance(query, str):
@@ -379,14 +381,10 @@ class Host:
         return b""
 
     def _window(self) -> Any:
-        from services.harness.runtime.api import Window
-
-        return Window(tuple(self.window), self.instruction, self.milestone_names)
+        return self._Window(tuple(self.window), self.instruction, self.milestone_names)
 
     def step(self, body: memoryview) -> bytes:
-        from services.harness.runtime.api import Detection, Proposal
-        from services.harness.runtime.perception import QUERIES
-
+        Detection, Proposal = self._Detection, self._Proposal
         r = codec.Reader(body)
         now, cache = self._frame(r)
         for _ in range(r.u32()):  # perception answers the host sent along
@@ -396,13 +394,12 @@ class Host:
         window = self._window()
         asked = self.asked
         asked.clear()
-        w = codec.Writer()
-        parts = w.parts
-        w.u32(len(flat) // 2)
-        pack = codec.RESULT.pack
+        heads: list[Any] = []  # per critic run: index, result kind, elapsed (codec.RESULT)
+        w = codec.Writer()  # the bodies of proposals and errors, in order
         thread_time, perf = time.thread_time, time.perf_counter
         cell_index, cell_start, monotonic = self._cell_index, self._cell_start, time.monotonic
         critics = self.critics
+        R_NONE, R_PROPOSAL, R_ERROR = codec.R_NONE, codec.R_PROPOSAL, codec.R_ERROR
         for k in range(0, len(flat), 2):
             index = flat[k]
             name, fn = critics[index]
@@ -415,25 +412,30 @@ class Host:
             except BaseException as exc:  # noqa: BLE001 - package code: that critic is switched off
                 elapsed = clock() - t0
                 cell_index[0] = -1
-                parts.append(pack(index, codec.R_ERROR, elapsed))
+                heads += (index, R_ERROR, elapsed)
                 w.text(_describe(exc))
                 continue
             elapsed = clock() - t0
             cell_index[0] = -1
             if result is None:
-                parts.append(pack(index, codec.R_NONE, elapsed))
+                heads += (index, R_NONE, elapsed)
             elif isinstance(result, Proposal):
-                parts.append(pack(index, codec.R_PROPOSAL, elapsed))
+                heads += (index, R_PROPOSAL, elapsed)
                 try:
                     codec.encode_proposal(w, str(result.evidence), str(result.suggested_mode), dict(result.details))
                 except Exception as exc:  # noqa: BLE001 - details that are not numbers
                     return _error(f"critic {name}: proposal does not encode: {_describe(exc)}")
             else:
-                parts.append(pack(index, codec.R_ERROR, elapsed))
+                heads += (index, R_ERROR, elapsed)
                 w.text(f"returned {type(result).__name__}, not a Proposal or None")
+        n = len(heads) // 3
+        out = codec.Writer()
+        out.u32(n)
+        out.parts.append(codec.result_heads(n).pack(*heads))
+        out.parts += w.parts
         # Which queries the critics asked of this frame: the host sends those along next step.
-        w.u32(sum(1 << i for i, q in enumerate(QUERIES) if (now, q) in asked))
-        return w.message(codec.RESULTS)
+        out.u32(sum(1 << i for i, q in self._queries if (now, q) in asked))
+        return out.message(codec.RESULTS)
 
     def rec_start(self, body: memoryview) -> bytes:
         ref, params = pickle.loads(body)

@@ -53,7 +53,7 @@ import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -62,6 +62,8 @@ from services.harness.sandbox import codec
 log = logging.getLogger("zetta.harness.sandbox")
 
 _SPAWN = struct.Struct("<IIIQ")
+_U32 = struct.Struct("<I")
+_ZERO = _U32.pack(0)
 _CELL = struct.Struct("<iid")
 _ROOT = Path(__file__).resolve().parents[3]
 #: How often the host looks at the call cell while the child is between calls (the deadline of a
@@ -264,24 +266,19 @@ def _remove(path: str) -> None:
 # ---- one child ------------------------------------------------------------------------------
 
 
-class CriticResult:
+class CriticResult(NamedTuple):
     """One critic call in the child: ``kind`` codec.R_NONE / R_PROPOSAL / R_ERROR, its elapsed
     time (thread CPU when the host asked for it, else wall), and the proposal or the error.
-    (A plain class with slots: ten of them are built per env step.)"""
+    (A tuple: ten of them are built per env step.)"""
 
-    __slots__ = ("index", "kind", "elapsed_s", "proposal", "error")
+    index: int
+    kind: int
+    elapsed_s: float
+    proposal: tuple[str, str, dict[str, float]] | None = None
+    error: str = ""
 
-    def __init__(self, index: int, kind: int, elapsed_s: float,
-                 proposal: tuple[str, str, dict[str, float]] | None = None, error: str = "") -> None:
-        self.index = index
-        self.kind = kind
-        self.elapsed_s = elapsed_s
-        self.proposal = proposal
-        self.error = error
 
-    def __repr__(self) -> str:
-        return (f"CriticResult(index={self.index}, kind={self.kind}, elapsed_s={self.elapsed_s}, "
-                f"proposal={self.proposal!r}, error={self.error!r})")
+_new_tuple = tuple.__new__
 
 
 @dataclass(frozen=True)
@@ -304,10 +301,20 @@ class SandboxClient:
         self._finalizer = weakref.finalize(self, _kill, self.pid, self._pidfd)
         self._poll = select.poll()
         self._poll.register(self._sock.fileno(), select.POLLIN | select.POLLHUP | select.POLLERR)
+        self._wpoll = select.poll()
+        self._wpoll.register(self._sock.fileno(), select.POLLOUT | select.POLLHUP | select.POLLERR)
         self._frames = codec.FrameEncoder()
         #: Bit i set: the critics asked perception query i (QUERIES) of the last frame.
         self.asked = 0
-        self._sock.settimeout(self.limits.load_timeout_s)
+        # Non-blocking: a send or receive is one system call (a socket with a timeout polls before
+        # each); waits go through the pollers, with deadlines (a child that stops reading or
+        # answering never blocks the host).
+        self._sock.setblocking(False)
+        #: The last step's critic runs, as sent (the same most steps) and as the reply's heads.
+        self._runs: tuple[tuple[int, bool], ...] | None = None
+        self._runs_msg = b""
+        self._runs_index: tuple[int, ...] = ()
+        self._heads: struct.Struct = struct.Struct("<")
         self.dead = ""
         kind, r = self._call(b"", lambda i: self.limits.load_timeout_s, cap_s=self.limits.load_timeout_s)
         if kind != codec.READY:
@@ -347,11 +354,8 @@ class SandboxClient:
         the child is killed when a call in it passes its hard limit or the reply passes ``cap_s``."""
         if self.dead:
             raise SandboxError(-1, f"the sandbox is gone ({self.dead})")
-        try:
-            if msg:
-                self._sock.sendall(msg)
-        except OSError as exc:
-            raise self._kill(-1, f"sending to the sandbox failed: {exc}") from None
+        if msg:
+            self._sendall(msg)
         give_up = time.monotonic() + cap_s
         while True:
             now = time.monotonic()
@@ -367,10 +371,13 @@ class SandboxClient:
             if not self._poll.poll(max(1, int((deadline - now) * 1000 + 0.999))):
                 continue
             try:
-                kind, body = self._read()
+                got = self._read()
             except (OSError, ConnectionError, codec.WireError) as exc:
                 index, _ = self._cell_now()
                 raise self._kill(index, f"the sandbox process died or broke the protocol ({exc})") from None
+            if got is None:
+                continue  # nothing to read after all
+            kind, body = got
             if kind == codec.PERCEIVE and perceive is not None:
                 r = codec.Reader(body)
                 try:
@@ -380,19 +387,66 @@ class SandboxClient:
                     w = codec.Writer()
                     w.text(str(exc))
                     answer = w.message(codec.ERROR)
-                try:
-                    self._sock.sendall(answer)
-                except OSError as exc:
-                    raise self._kill(index, f"the sandbox process died ({exc})") from None
+                self._sendall(answer, index)
                 continue
             return kind, codec.Reader(body)
 
-    def _read(self) -> tuple[int, memoryview]:
-        first = self._sock.recv(1 << 16)  # a whole reply in the common case
+    def _sendall(self, msg: bytes, index: int = -1) -> None:
+        """Send a whole message: one system call in the common case; while the child's socket
+        buffer is full, waits for room for at most the load timeout, then kills the child."""
+        try:
+            sent = self._sock.send(msg)
+        except BlockingIOError:
+            sent = 0
+        except OSError as exc:
+            raise self._kill(index, f"sending to the sandbox failed: {exc}") from None
+        if sent == len(msg):
+            return
+        view = memoryview(msg)
+        deadline = time.monotonic() + self.limits.load_timeout_s
+        while sent < len(view):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise self._kill(index, f"sending to the sandbox failed: it read nothing for "
+                                        f"{self.limits.load_timeout_s:.1f} s; it was killed")
+            self._wpoll.poll(max(1, int(left * 1000 + 0.999)))
+            try:
+                sent += self._sock.send(view[sent:])
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                raise self._kill(index, f"sending to the sandbox failed: {exc}") from None
+
+    def _recv_rest(self, n: int) -> bytes:
+        """The next ``n`` bytes of a reply already begun (it has the load timeout to arrive)."""
+        buf = bytearray(n)
+        view = memoryview(buf)
+        got = 0
+        deadline = time.monotonic() + self.limits.load_timeout_s
+        while got < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ConnectionError(f"a reply stalled for {self.limits.load_timeout_s:.1f} s")
+            self._poll.poll(max(1, int(left * 1000 + 0.999)))
+            try:
+                r = self._sock.recv_into(view[got:])
+            except BlockingIOError:
+                continue
+            if r == 0:
+                raise ConnectionError("the sandbox closed its channel")
+            got += r
+        return bytes(buf)
+
+    def _read(self) -> tuple[int, memoryview] | None:
+        """One reply (None: nothing was there after all)."""
+        try:
+            first = self._sock.recv(1 << 16)  # a whole reply in the common case
+        except BlockingIOError:
+            return None
         if not first:
             raise ConnectionError("the sandbox closed its channel")
         if len(first) < 5:
-            first += _recv_exact(self._sock, 5 - len(first))
+            first += self._recv_rest(5 - len(first))
         length, kind = struct.unpack_from("<IB", first)
         if length < 1 or length > codec.MAX_REPLY:
             raise codec.WireError(f"reply of {length} bytes")
@@ -400,7 +454,7 @@ class SandboxClient:
             raise codec.WireError("the sandbox sent more than one reply")
         if len(first) == length + 4:
             return kind, memoryview(first)[5:]
-        return kind, memoryview(first[5:] + _recv_exact(self._sock, length + 4 - len(first)))
+        return kind, memoryview(first[5:] + self._recv_rest(length + 4 - len(first)))
 
     # ---- the calls ----
 
@@ -428,46 +482,61 @@ class SandboxClient:
     def _send(self, msg: bytes) -> None:
         if self.dead:
             raise SandboxError(-1, f"the sandbox is gone ({self.dead})")
-        try:
-            self._sock.sendall(msg)
-        except OSError as exc:
-            raise self._kill(-1, f"sending to the sandbox failed: {exc}") from None
+        self._sendall(msg)
 
     def step(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str],
              runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float], perceive: Perceive | None = None,
-             prefetched: Sequence[tuple[str, Any]] = ()) -> list[CriticResult]:
+             prefetched: Sequence[tuple[str, Any]] = (), cap_s: float | None = None) -> list[CriticResult]:
         """Append a frame to the child's window and run the critics ``runs`` ((index, time in CPU)).
         ``prefetched``: perception answers for this frame, sent along (a query the child asks
-        that is not among them costs a round trip through ``perceive``)."""
+        that is not among them costs a round trip through ``perceive``). ``cap_s``: how long the
+        whole step may take (default: the sum of the critics' hard limits plus 2 s). Returns a
+        :class:`CriticResult` per critic run, in order."""
         w = codec.Writer()
         layout = self._frames.encode(w, step, obs, action, milestones)
-        w.u32(len(prefetched))
-        for query, found in prefetched:
-            w.text(query)
-            codec.encode_detections(w, found)
-        w.u32(len(runs))
-        w.parts.append(struct.pack(f"<{2 * len(runs)}I", *(v for i, s in runs for v in (i, 1 if s else 0))))
-        cap = sum(hard_limit(i) for i, _ in runs) + 2.0
-        kind, r = self._call(layout + w.message(codec.STEP), hard_limit, cap, perceive)
+        parts = w.parts
+        if prefetched:
+            parts.append(_U32.pack(len(prefetched)))
+            for query, found in prefetched:
+                w.text(query)
+                codec.encode_detections(w, found)
+        else:
+            parts.append(_ZERO)
+        runs = tuple(runs)
+        if runs != self._runs:  # the same critics as last step, most of the time
+            self._runs = runs
+            self._runs_index = tuple(i for i, _ in runs)
+            self._runs_msg = struct.pack(f"<I{2 * len(runs)}I", len(runs),
+                                         *(v for i, s in runs for v in (i, 1 if s else 0)))
+            self._heads = codec.result_heads(len(runs))
+        parts.append(self._runs_msg)
+        if cap_s is None:
+            cap_s = sum(hard_limit(i) for i in self._runs_index) + 2.0
+        kind, r = self._call(layout + w.message(codec.STEP), hard_limit, cap_s, perceive)
         if kind != codec.RESULTS:
             raise self._kill(-1, f"the sandbox broke the protocol: {_error_text(kind, r)}")
         try:
-            out = []
-            for _ in range(r.u32()):
-                index, rk, elapsed = r.result()
+            n = r.u32()
+            if n != len(runs):
+                raise codec.WireError(f"{n} results for {len(runs)} critics")
+            heads = self._heads.unpack_from(r.buf, r.take_at(self._heads.size))
+            out: list[CriticResult] = []
+            append = out.append
+            it = iter(heads)
+            for index, rk, elapsed in zip(it, it, it):
                 if rk == codec.R_NONE:
-                    out.append(CriticResult(index, rk, elapsed))
+                    append(_new_tuple(CriticResult, (index, rk, elapsed, None, "")))
                 elif rk == codec.R_PROPOSAL:
-                    out.append(CriticResult(index, rk, elapsed, codec.decode_proposal(r)))
+                    append(_new_tuple(CriticResult, (index, rk, elapsed, codec.decode_proposal(r), "")))
                 elif rk == codec.R_ERROR:
-                    out.append(CriticResult(index, rk, elapsed, error=r.text(4000)))
+                    append(_new_tuple(CriticResult, (index, rk, elapsed, None, r.text(4000))))
                 else:
                     raise codec.WireError(f"result kind {rk}")
             self.asked = r.u32()
             r.done()
         except codec.WireError as exc:
             raise self._kill(-1, f"the sandbox broke the protocol: {exc}") from None
-        if [c.index for c in out] != [i for i, _ in runs]:
+        if heads[::3] != self._runs_index:
             raise self._kill(-1, "the sandbox answered for other critics than it was asked")
         return out
 

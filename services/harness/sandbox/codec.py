@@ -48,12 +48,27 @@ _U32 = struct.Struct("<I")
 _HEAD = struct.Struct("<IB")
 _I64 = struct.Struct("<q")
 _F64 = struct.Struct("<d")
-#: One critic's result in RESULTS: its index, the result kind, its elapsed time.
+#: One critic's result in RESULTS: its index, the result kind, its elapsed time. RESULTS carries
+#: the count, every result's head, then the bodies of the proposals and errors in order.
 RESULT = struct.Struct("<IId")
+_RESULT_HEADS: dict[int, struct.Struct] = {}
+
+
+def result_heads(n: int) -> struct.Struct:
+    """The heads of ``n`` results, packed back to back (:data:`RESULT` each)."""
+    heads = _RESULT_HEADS.get(n)
+    if heads is None:
+        heads = struct.Struct("<" + "IId" * n)
+        if len(_RESULT_HEADS) < 1024:
+            _RESULT_HEADS[n] = heads
+    return heads
 #: A frame's milestones are the previous frame's (sent in place of a count of strings).
 SAME_MILESTONES = 0xFFFFFFFF
 #: One detection on the wire: position (3) and box (6), float64.
 _DETECTION = 9
+_STEP_HEAD = struct.Struct("<qI")
+_SAME = _U32.pack(SAME_MILESTONES)
+_NINE = struct.Struct("<9d")
 
 
 class WireError(ValueError):
@@ -123,6 +138,7 @@ class Writer:
 
 
 _HEADERS: dict[tuple[str, np.dtype[Any], tuple[int, ...]], bytes] = {}
+_DTYPES: dict[bytes, np.dtype[Any]] = {}
 _PARSED: dict[bytes, tuple[str, np.dtype[Any], tuple[int, ...], int]] = {}
 
 
@@ -190,6 +206,10 @@ class Reader:
         """The next ``n`` bytes."""
         return self._take(n)
 
+    def take_at(self, n: int) -> int:
+        """Skip the next ``n`` bytes (bounds-checked); returns where they begin in :attr:`buf`."""
+        return self._at(n)
+
     def result(self) -> tuple[int, int, float]:
         """One critic result's head (:data:`RESULT`)."""
         index, kind, elapsed = RESULT.unpack_from(self.buf, self._at(RESULT.size))
@@ -221,7 +241,12 @@ class Reader:
 
     def array(self, copy: bool = False) -> np.ndarray:
         (n,) = struct.unpack("<B", self._take(1))
-        dt = np.dtype(bytes(self._take(n)).decode("ascii"))
+        code = bytes(self._take(n))
+        dt = _DTYPES.get(code)
+        if dt is None:
+            dt = np.dtype(code.decode("ascii"))
+            if len(_DTYPES) < 256:
+                _DTYPES[code] = dt
         if dt.hasobject:
             raise WireError("object arrays are not allowed")
         (ndim,) = struct.unpack("<B", self._take(1))
@@ -259,36 +284,51 @@ class FrameEncoder:
     """Encodes frames for one child (host side): the observation as one block of raw bytes, its
     layout in a LAYOUT message only when it changed, the milestones only when they changed."""
 
-    __slots__ = ("_key", "_milestones")
+    __slots__ = ("_key", "_milestones", "_names", "_signature")
 
     def __init__(self) -> None:
         self._key: Any = None
         self._milestones: frozenset[str] | None = None
+        #: The names and (dtype, shape) of the last frame's arrays, when all were plain arrays.
+        self._names: tuple[str, ...] | None = None
+        self._signature: list[tuple[np.dtype[Any], tuple[int, ...]]] | None = None
 
     def encode(self, w: Writer, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
                milestones: frozenset[str]) -> bytes:
         """Writes the frame into ``w``; returns the LAYOUT message to send before it (b"" when the
         child knows the layout already)."""
-        arrays = [v if type(v) is np.ndarray and v.flags.c_contiguous else _contiguous(np.asarray(v))
-                  for v in obs.values()]
-        key = (tuple(obs), [(a.dtype, a.shape) for a in arrays])
+        values = list(obs.values())
+        block = None
+        try:  # the common case: the layout of the last frame, every array C-contiguous
+            if [(v.dtype, v.shape) for v in values] == self._signature and tuple(obs) == self._names:
+                block = b"".join(values)  # (refuses a non-contiguous array)
+        except (AttributeError, TypeError, ValueError, BufferError):
+            block = None
         layout = b""
-        if key != self._key:
-            if any(a.dtype.hasobject for a in arrays):
-                raise ValueError("object arrays cannot go to the sandbox")
-            self._key = key
-            layout = frame(LAYOUT, pickle.dumps([(n, a.dtype.str, a.shape) for n, a in zip(key[0], arrays)]))
+        if block is None:
+            arrays = [v if type(v) is np.ndarray and v.flags.c_contiguous else _contiguous(np.asarray(v))
+                      for v in values]
+            key = (tuple(obs), [(a.dtype, a.shape) for a in arrays])
+            if key != self._key:
+                if any(a.dtype.hasobject for a in arrays):
+                    raise ValueError("object arrays cannot go to the sandbox")
+                self._key = key
+                layout = frame(LAYOUT, pickle.dumps([(n, a.dtype.str, a.shape) for n, a in zip(key[0], arrays)]))
+            # Arrays that are their own layout (not numpy scalars or other sequences) take the fast
+            # path from the next frame on.
+            exact = all(type(v) is np.ndarray for v in values)
+            self._names, self._signature = (key[0], key[1]) if exact else (None, None)
+            block = b"".join(arrays)
         parts = w.parts
-        parts.append(_I64.pack(step))
-        parts.append(_U32.pack(sum(a.nbytes for a in arrays)))
-        parts.extend(arrays)
+        parts.append(_STEP_HEAD.pack(step, len(block)))
+        parts.append(block)
         if action is None:
             parts.append(_U32.pack(0))
         else:
             parts.append(_U32.pack(1))
             w.array(np.asarray(action))
         if milestones == self._milestones:
-            parts.append(_U32.pack(SAME_MILESTONES))
+            parts.append(_SAME)
         else:
             self._milestones = milestones
             w.texts(sorted(milestones))
@@ -299,12 +339,16 @@ class FrameDecoder:
     """The inverse of :class:`FrameEncoder` (child side). The layout comes from the host (trusted);
     every read is still bounds-checked."""
 
-    __slots__ = ("_layout", "_nbytes", "_milestones")
+    __slots__ = ("_layout", "_nbytes", "_milestones", "_dtype", "_slices")
 
     def __init__(self) -> None:
         self._layout: list[tuple[str, np.dtype[Any], int, int, tuple[int, ...]]] = []
         self._nbytes = 0
         self._milestones: frozenset[str] = frozenset()
+        #: When every array of the layout has one dtype: that dtype, and per array its name,
+        #: element range and shape (None: 1-d), to cut from one array over the whole block.
+        self._dtype: np.dtype[Any] | None = None
+        self._slices: list[tuple[str, int, int, tuple[int, ...] | None]] = []
 
     def set_layout(self, body: bytes | memoryview) -> None:
         layout, offset = [], 0
@@ -316,6 +360,13 @@ class FrameDecoder:
             layout.append((name, dtype, offset, count, tuple(shape)))
             offset += count * dtype.itemsize
         self._layout, self._nbytes = layout, offset
+        dtypes = {dt for _, dt, _, _, _ in layout}
+        self._dtype = None
+        if len(dtypes) == 1:
+            (dtype,) = dtypes
+            self._dtype = dtype
+            self._slices = [(name, off // dtype.itemsize, off // dtype.itemsize + count, None if len(shape) == 1 else shape)
+                            for name, _, off, count, shape in layout]
 
     def decode(self, r: Reader) -> tuple[int, dict[str, np.ndarray], np.ndarray | None, frozenset[str]]:
         step = r.i64()
@@ -323,8 +374,12 @@ class FrameDecoder:
         if n != self._nbytes:
             raise WireError(f"observation of {n} bytes, its layout says {self._nbytes}")
         block = r.take(n)
-        frombuffer = np.frombuffer
-        obs = {name: frombuffer(block, dt, count, off).reshape(shape) for name, dt, off, count, shape in self._layout}
+        if self._dtype is not None:  # one array over the block, a view per observation (cheaper)
+            flat = np.frombuffer(block, self._dtype)
+            obs = {name: flat[a:b] if shape is None else flat[a:b].reshape(shape) for name, a, b, shape in self._slices}
+        else:
+            frombuffer = np.frombuffer
+            obs = {name: frombuffer(block, dt, count, off).reshape(shape) for name, dt, off, count, shape in self._layout}
         action = r.array() if r.u32() else None
         n = r.u32()
         if n != SAME_MILESTONES:
@@ -368,18 +423,22 @@ def encode_detections(w: Writer, found: Any) -> None:
         w.i64(-1)
     elif isinstance(found, list):
         w.i64(len(found))
-        if found:
-            w.parts.append(np.stack([_detection(d) for d in found]).tobytes())
+        w.parts.extend(_detection(d) for d in found)
     else:
         w.i64(-2)
-        w.parts.append(_detection(found).tobytes())
+        w.parts.append(_detection(found))
 
 
-def _detection(d: Any) -> np.ndarray:
-    a = np.concatenate((np.ravel(d.pos), np.ravel(d.box)), dtype=np.float64)
-    if a.shape != (_DETECTION,):
-        raise ValueError(f"a detection is a position (3) and a box (6), got {a.shape[0]} numbers")
-    return a
+def _detection(d: Any) -> bytes:
+    pos, box = d.pos, d.box
+    values = ((pos.tolist() if type(pos) is np.ndarray and pos.ndim == 1 else np.ravel(pos).tolist())
+              + (box.tolist() if type(box) is np.ndarray and box.ndim == 1 else np.ravel(box).tolist()))
+    if len(values) != _DETECTION:
+        raise ValueError(f"a detection is a position (3) and a box (6), got {len(values)} numbers")
+    try:
+        return _NINE.pack(*values)
+    except struct.error:  # not numbers: as float64 (what the array version did), or its error
+        return np.array(values, dtype=np.float64).tobytes()
 
 
 def decode_detections(r: Reader, detection: Any) -> Any:

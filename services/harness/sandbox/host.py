@@ -26,6 +26,9 @@ log = logging.getLogger("zetta.harness.sandbox")
 #: A perception query is answered along with each frame until the critics have not asked it of
 #: this many frames in a row (then it costs a round trip when asked, which starts it again).
 PREFETCH_STEPS = 8
+#: Queries that cost much more than a round trip (``others``: a detection per object, each drawn
+#: and sent) go along only while the critics asked them of the last frame.
+PREFETCH_STEPS_BY_QUERY = {"others": 1}
 
 
 class SandboxedCode:
@@ -44,6 +47,7 @@ class SandboxedCode:
         #: Per perception query (QUERIES), how many steps ago the critics last asked it of the
         #: newest frame: answered along with the frame while under PREFETCH_STEPS.
         self._unasked = [PREFETCH_STEPS] * len(QUERIES)
+        self._prefetch = tuple((i, q, PREFETCH_STEPS_BY_QUERY.get(q, PREFETCH_STEPS)) for i, q in enumerate(QUERIES))
         loaded = self._spawn()
         self.critics = loaded.critics
         self.callables = loaded.callables
@@ -97,16 +101,18 @@ class SandboxedCode:
             client.push(f.step, f.obs, f.action, f.milestones)
         return client
 
-    def step(self, frames: Sequence[Frame], runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float]
-             ) -> list[CriticResult]:
-        """Send the newest frame of ``frames`` and run the critics ``runs`` ((index, timed in CPU))."""
+    def step(self, frames: Sequence[Frame], runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float],
+             cap_s: float | None = None) -> list[CriticResult]:
+        """Send the newest frame of ``frames`` and run the critics ``runs`` ((index, timed in CPU));
+        the results as :meth:`SandboxClient.step` returns them."""
         client = self._live(frames)
         f = frames[-1]
         # The queries the critics asked of recent frames are answered along with the frame (one
         # round trip per step, not one per query); any other query costs a round trip when asked.
         unasked = self._unasked
-        prefetched = [(q, f.perceive(q)) for i, q in enumerate(QUERIES) if unasked[i] < PREFETCH_STEPS]
-        results = client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, _perceiver(frames), prefetched)
+        prefetched = [(q, f.perceive(q)) for i, q, steps in self._prefetch if unasked[i] < steps]
+        results = client.step(f.step, f.obs, f.action, f.milestones, runs, hard_limit, _perceiver(frames), prefetched,
+                              cap_s)
         asked = client.asked
         for i in range(len(unasked)):
             unasked[i] = 0 if asked >> i & 1 else unasked[i] + 1
@@ -130,9 +136,9 @@ def _perceiver(frames: Sequence[Frame]) -> Callable[[int, str], Any]:
     return perceive
 
 
-def to_proposal(name: str, result: CriticResult) -> Proposal:
-    assert result.proposal is not None
-    evidence, mode, details = result.proposal
+def to_proposal(name: str, proposal: tuple[str, str, dict[str, float]]) -> Proposal:
+    """A proposal as the child reported it ((evidence, mode, details)), under the critic's name."""
+    evidence, mode, details = proposal
     return Proposal(name, evidence, mode, details)
 
 
