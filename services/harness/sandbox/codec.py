@@ -138,7 +138,24 @@ class Writer:
 
 
 _HEADERS: dict[tuple[str, np.dtype[Any], tuple[int, ...]], bytes] = {}
-_DTYPES: dict[bytes, np.dtype[Any]] = {}
+_ARRAY_HEADS: dict[bytes, tuple[np.dtype[Any], tuple[int, ...], int]] = {}
+
+
+def _parse_array_head(head: bytes) -> tuple[np.dtype[Any], tuple[int, ...], int]:
+    """``u8 n | dtype string (n) | u8 ndim | u32 shape (ndim)`` -> dtype, shape, byte count."""
+    n = head[0]
+    try:
+        dt = np.dtype(head[1 : 1 + n].decode("ascii"))
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise WireError(f"bad array dtype: {exc}") from None
+    if dt.hasobject:
+        raise WireError("object arrays are not allowed")
+    ndim = head[1 + n]
+    shape = struct.unpack_from(f"<{ndim}I", head, 2 + n)
+    count = 1
+    for d in shape:
+        count *= d
+    return dt, tuple(shape), count * dt.itemsize
 _PARSED: dict[bytes, tuple[str, np.dtype[Any], tuple[int, ...], int]] = {}
 
 
@@ -240,22 +257,23 @@ class Reader:
         return [self.text() for _ in range(n)]
 
     def array(self, copy: bool = False) -> np.ndarray:
-        (n,) = struct.unpack("<B", self._take(1))
-        code = bytes(self._take(n))
-        dt = _DTYPES.get(code)
-        if dt is None:
-            dt = np.dtype(code.decode("ascii"))
-            if len(_DTYPES) < 256:
-                _DTYPES[code] = dt
-        if dt.hasobject:
-            raise WireError("object arrays are not allowed")
-        (ndim,) = struct.unpack("<B", self._take(1))
-        shape = struct.unpack(f"<{ndim}I", self._take(4 * ndim))
-        count = 1
-        for s in shape:
-            count *= s
-        data = self._take(count * dt.itemsize)
-        a = np.frombuffer(data, dtype=dt).reshape(shape)
+        buf, pos = self.buf, self.pos
+        try:  # the header (dtype, ndim, shape) parsed once per distinct header
+            n = buf[pos]
+            size = 2 + n + 4 * buf[pos + 1 + n]
+        except IndexError:
+            raise WireError(f"message truncated at byte {pos}") from None
+        if pos + size > self.end:
+            raise WireError(f"message truncated at byte {pos} (wanted {size} more of {self.end})")
+        head = bytes(buf[pos : pos + size])
+        parsed = _ARRAY_HEADS.get(head)
+        if parsed is None:
+            parsed = _parse_array_head(head)
+            if len(_ARRAY_HEADS) < 256:
+                _ARRAY_HEADS[head] = parsed
+        dt, shape, nbytes = parsed
+        self._at(len(head))
+        a = np.frombuffer(self._take(nbytes), dtype=dt).reshape(shape)
         return a.copy() if copy else a
 
     def arrays(self) -> dict[str, np.ndarray]:
