@@ -4,7 +4,7 @@ diagnostic replay runs its critic there frame by frame. A critic that raises, sp
 machine is refused with the reason (what the evolver records as the LLM's refused patches) and the
 repair goes on with the next patch; nothing it tried happened. The kernel-layer test bypasses the
 static checks (as an escape from them would) so that the attacks reach the kernel; these need root (the
-sandbox drops to uid 65534 and chroots only then). scripts/eval_harness.py never imports the
+sandbox changes uid and chroots only then). scripts/eval_harness.py never imports the
 package it evaluates (its env workers run it in their sandbox)."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from tests.unit.test_evolver_repair import DROP_CODE, PARENT, _Handler, drop_clu
 
 pytestmark = [pytest.mark.timeout(180)]
 needs_root = pytest.mark.skipif(os.geteuid() != 0,
-                                reason="the sandbox drops to uid 65534 and chroots only when started as root")
+                                reason="the sandbox changes uid and chroots only when started as root")
 ROOT = Path(__file__).resolve().parents[2]
 
 __all__ = ["llm_server"]  # the fixture, used by name

@@ -2,8 +2,9 @@
 static checks (loaded unchecked, straight into the sandbox runner) tries to write files, start
 processes, open sockets, signal the host and take the machine's memory. Every attempt fails inside
 the child, and the test checks from outside that nothing happened: no marker file, no connection
-on a listener it opened, the host process alive. Needs root (to drop to uid 65534 and chroot);
-without it the child runs degraded and these tests are skipped with the reason."""
+on a listener it opened, the host process alive; and one child cannot signal another (each has a
+uid of its own). Needs root (to change uid and chroot); without it the child runs degraded and
+these tests are skipped with the reason."""
 
 from __future__ import annotations
 
@@ -15,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.harness.sandbox.client import SandboxClient, SandboxError
+from services.harness.sandbox.client import UID_BASE, SandboxClient, SandboxError
 
 pytestmark = [
     pytest.mark.timeout(120),
-    pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox drops to uid 65534 and chroots only when started as root"),
+    pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox changes uid and chroots only when started as root"),
 ]
 
 ATTEMPTS = r'''
@@ -172,10 +173,12 @@ def test_unchecked_package_code_cannot_escape_the_sandbox(targets) -> None:
         print(f"{name:>13}: {evidence}  {details}")  # shown with -s: what each attempt got
     try:
         evidence, ids = out["whoami"]
-        assert ids == {"uid": 65534.0, "gid": 65534.0, "euid": 65534.0, "groups": 0.0}
+        own = float(UID_BASE + child.pid)
+        assert ids == {"uid": own, "gid": own, "euid": own, "groups": 0.0}
         assert evidence == "/"  # its own scratch dir, as its root
         assert child.isolation["mode"] == "root" and child.isolation["filesystem"] == "chroot"
-        assert child.isolation["uid"] == 65534 and child.isolation["chroot"] and child.isolation["network_isolated"]
+        assert child.isolation["uid"] == UID_BASE + child.pid and child.isolation["chroot"]
+        assert child.isolation["network_isolated"]
         assert child.isolation["degraded"] == []
         for attempt in ("system", "write_marker", "write_tmp", "read_passwd", "connect", "unix", "fork",
                         "subprocess", "thread", "signal_host", "setuid_root", "big_file", "memory_bomb"):
@@ -228,3 +231,41 @@ def test_the_static_checks_still_apply_inside_the_sandbox() -> None:
             child.load(4, {"attempts": ATTEMPTS}, {}, checked=True)
     finally:
         child.close()
+
+
+SIGNAL_OTHER = r'''
+import os
+import signal
+
+from services.harness.runtime.api import Proposal
+
+
+def critic_signal_other(window, params):
+    target = int(params["pid"])
+    try:
+        os.kill(target, 0)  # permission check only
+        os.kill(target, signal.SIGKILL)
+    except BaseException as exc:
+        return Proposal("signal_other", f"{type(exc).__name__}: {exc}", "", {"blocked": 1.0})
+    return Proposal("signal_other", "succeeded", "", {"blocked": 0.0})
+'''
+
+
+def test_one_child_cannot_signal_another() -> None:
+    victim, attacker = SandboxClient(), SandboxClient()
+    try:
+        assert victim.isolation["uid"] != attacker.isolation["uid"]
+        attacker.load(4, {"attack": SIGNAL_OTHER}, {"attack": {"pid": victim.pid}}, checked=False)
+        attacker.start("", [])
+        (res,) = attacker.step(0, {}, None, frozenset(), [(0, False)], lambda i: 5.0)
+        assert res.proposal is not None, res.error
+        evidence, _, details = res.proposal
+        assert details["blocked"] == 1.0 and "Operation not permitted" in evidence, evidence
+        # The victim still answers.
+        victim.load(4, {"ok": "def critic_ok(window, params):\n    return None\n"}, checked=False)
+        victim.start("", [])
+        (ok,) = victim.step(0, {}, None, frozenset(), [(0, False)], lambda i: 5.0)
+        assert ok.kind == 0 and not victim.dead
+    finally:
+        victim.close()
+        attacker.close()

@@ -19,7 +19,7 @@ from services.harness.sandbox.client import SandboxClient
 
 pytestmark = [
     pytest.mark.timeout(120),
-    pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox drops to uid 65534 and chroots only when started as root"),
+    pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox changes uid and chroots only when started as root"),
     pytest.mark.skipif(platform.machine() != "x86_64", reason="the filter has a system call table for x86_64 only"),
 ]
 
@@ -100,7 +100,7 @@ def _results(child: SandboxClient, loaded_critics: tuple[str, ...]) -> dict[str,
 
 
 def test_refused_system_calls_get_eperm_and_signals_reach_only_the_child_itself() -> None:
-    sibling = SandboxClient()  # another session's child: same uid 65534
+    sibling = SandboxClient()  # another session's child (its own uid; the filter stops this even where uids are shared)
     child = SandboxClient()
     try:
         assert child.isolation["seccomp"] is True and child.isolation["degraded"] == []

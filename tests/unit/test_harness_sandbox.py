@@ -16,6 +16,7 @@ import pytest
 from services.harness.package.loader import load_package
 from services.harness.package.model import LoadedPackage
 from services.harness.runtime.engine import HarnessError, HarnessRuntime
+from services.harness.sandbox.client import UID_BASE
 from tests.unit.test_harness_runtime import ACT, BAD, RULE, TOOLS, obs, run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -45,7 +46,7 @@ def runtimes():
 def test_critics_and_a_package_recovery_run_in_the_sandbox(runtimes) -> None:
     rt = HarnessRuntime(sandboxed(RULE))
     runtimes.append(rt)
-    assert rt.sandbox is not None and rt.sandbox.isolation["uid"] == 65534
+    assert rt.sandbox is not None and rt.sandbox.isolation["uid"] == UID_BASE + rt.sandbox.pid
     rt.action_shape = (7,)
     rt.start("task", [])
     decisions = run(rt, [obs(0.0), obs(1.0), obs(1.0), obs(1.0), obs(1.0), obs(0.0), obs(0.0), obs(0.0), obs(0.0)])
@@ -220,7 +221,7 @@ def test_a_dead_zygote_is_replaced_at_the_next_spawn() -> None:
     proc.wait()
     child = SandboxClient()
     try:
-        assert child.isolation["uid"] == 65534 or child.isolation["degraded"]
+        assert child.isolation["uid"] == UID_BASE + child.pid or child.isolation["degraded"]
         assert zygote()._proc is not proc
     finally:
         child.close()

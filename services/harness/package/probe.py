@@ -1,8 +1,8 @@
 """Import a package's tools in a child process with a deadline, before a server trusts them.
 
 With the harness sandbox on (the default, services/harness/sandbox/client.py) that child is a
-sandbox child: the package's module-level code runs as nobody, without network, in a private
-scratch root, under the sandbox's resource limits, and is killed at the deadline. With
+sandbox child: the package's module-level code runs under a uid of its own, without network, in a
+private scratch root, under the sandbox's resource limits, and is killed at the deadline. With
 ``ZETTA_HARNESS_SANDBOX=off`` it is a plain child forked from the fork server described below.
 
 The static checks cannot tell whether module-level code of a tool finishes (a loop, a huge

@@ -5,9 +5,10 @@ services/harness/sandbox/client.py. It imports numpy and the harness runtime, le
 network (an empty network namespace) and, when the host is not root, enters a user namespace
 (services/harness/sandbox/userns.py), and then forks one child per request it reads on its control
 socket. Each child locks itself in before it reads any package code (:func:`jail`): private
-scratch directory as its root, resource limits, uid/gid 65534 (root host) or no capabilities in
-the user namespace (non-root host), no new privileges, killed with its zygote, and last a seccomp
-filter (seccomp.py). It then serves one harness runtime's package code
+scratch directory as its root, resource limits, a uid and gid of its own (root host: the host's
+uid base plus its pid) or no capabilities in the user namespace (non-root host), no new
+privileges, killed with its zygote, and last a seccomp filter (seccomp.py). It then serves one
+harness runtime's package code
 over the channel socket the host passed with the request (services/harness/sandbox/codec.py).
 Nothing here is imported by the host process.
 """
@@ -43,9 +44,9 @@ from services.harness.sandbox import codec, seccomp, userns  # noqa: E402
 PR_SET_PDEATHSIG = 1
 PR_SET_DUMPABLE = 4
 PR_SET_NO_NEW_PRIVS = 38
-NOBODY = 65534
-#: The spawn request: memory MB, CPU s, open files, file size bytes, then the scratch base path.
-SPAWN = struct.Struct("<IIIQ")
+#: The spawn request: memory MB, CPU s, open files, file size bytes, uid base, then the scratch
+#: base path. A child's uid and gid are the uid base plus its pid: no two live children share one.
+SPAWN = struct.Struct("<IIIQI")
 #: The shared cell a child writes before and after each call: index of the call (-1: none), start.
 CELL = struct.Struct("<iid")
 
@@ -90,13 +91,15 @@ def leave_network() -> str:
 
 
 def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int, keep: tuple[int, ...],
-         network_degraded: str) -> dict[str, Any]:
+         network_degraded: str, uid_base: int) -> dict[str, Any]:
     """Lock this (freshly forked) child in; returns what is enforced and what is degraded.
 
-    How depends on the zygote's mode (services/harness/sandbox/userns.py): as root, chroot and
-    uid/gid 65534; in a user namespace (a non-root host), a private root (pivot_root) and no
-    capabilities; degraded, neither."""
+    How depends on the zygote's mode (services/harness/sandbox/userns.py): as root, chroot and a
+    uid/gid of its own (``uid_base`` plus its pid: pids are unique among live processes, so no two
+    live children share one); in a user namespace (a non-root host), a private root (pivot_root)
+    and no capabilities; degraded, neither."""
     degraded: list[str] = []
+    uid = uid_base + os.getpid()  # root mode: its own
     base_as = _vm_size()  # before the chroot hides /proc
     if network_degraded:
         degraded.append("network: " + network_degraded)
@@ -105,7 +108,7 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
     scratch = os.path.join(scratch_base, f"c{os.getpid()}")
     os.mkdir(scratch, 0o700)
     if root:
-        os.chown(scratch, NOBODY, NOBODY)
+        os.chown(scratch, uid, uid)
     # stdin, stdout, stderr go nowhere: package output never reaches the host's logs.
     null = os.open(os.devnull, os.O_RDWR)
     for fd in (0, 1, 2):
@@ -140,8 +143,8 @@ def jail(scratch_base: str, memory_mb: int, cpu_s: int, nofile: int, fsize: int,
         resource.setrlimit(which, (value, value))
     if root:
         os.setgroups([])
-        os.setgid(NOBODY)
-        os.setuid(NOBODY)
+        os.setgid(uid)
+        os.setuid(uid)
     elif iso.mode == "userns":
         userns.drop_capabilities()  # uid and gid are 65534 already: the only ids mapped
     resource.setrlimit(resource.RLIMIT_NPROC, (0, 0))
@@ -480,13 +483,13 @@ class Host:
 
 
 def child_main(chan_fd: int, cell_fd: int, spec: bytes, network_degraded: str) -> None:
-    memory_mb, cpu_s, nofile, fsize = SPAWN.unpack_from(spec)
+    memory_mb, cpu_s, nofile, fsize, uid_base = SPAWN.unpack_from(spec)
     scratch_base = spec[SPAWN.size:].decode()
     cell = mmap.mmap(cell_fd, CELL.size)
     os.close(cell_fd)
     sock = socket.socket(fileno=chan_fd)
     try:
-        report = jail(scratch_base, memory_mb, cpu_s, nofile, fsize, (sock.fileno(),), network_degraded)
+        report = jail(scratch_base, memory_mb, cpu_s, nofile, fsize, (sock.fileno(),), network_degraded, uid_base)
     except BaseException as exc:  # noqa: BLE001 - a child that cannot lock itself in never runs package code
         sock.sendall(_error(f"the sandbox could not be set up: {_describe(exc)}"))
         os._exit(3)

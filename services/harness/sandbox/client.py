@@ -9,7 +9,8 @@ on first use or by :func:`start_zygote`) that preloaded numpy and the runtime, s
 fork (milliseconds), not an interpreter start.
 
 What the kernel enforces on every child (services/harness/sandbox/child.py ``jail``, before any
-package code is read): uid and gid 65534 (nobody) with no supplementary groups; no new privileges;
+package code is read): as root, a uid and gid of its own (:data:`UID_BASE` plus its pid; no user of
+the host, and no other child, has it) with no supplementary groups; no new privileges;
 not dumpable; an empty network namespace (no interface is up, so no socket reaches anything);
 a private scratch directory as its root (chroot): nothing else of the file system is visible,
 let alone writable; RLIMIT_NPROC 0 (no fork, no thread, no exec'd helper), RLIMIT_AS (memory),
@@ -61,7 +62,11 @@ from services.harness.sandbox import codec
 
 log = logging.getLogger("zetta.harness.sandbox")
 
-_SPAWN = struct.Struct("<IIIQ")
+_SPAWN = struct.Struct("<IIIQI")
+#: Sandbox children of a root host run as uid = gid = UID_BASE + their pid: a range no user or group of the host
+#: may use (UID_BASE up to UID_BASE + /proc/sys/kernel/pid_max, at most 4194304: 200000-4394303).
+#: Every live child has its own, so one child cannot signal another, or read what it owns.
+UID_BASE = 200_000
 _U32 = struct.Struct("<I")
 _ZERO = _U32.pack(0)
 _CELL = struct.Struct("<iid")
@@ -172,7 +177,7 @@ class Zygote:
         self._ready = True
         self.network_degraded = body.decode()
         base = Path(tempfile.mkdtemp(prefix="zetta-sandbox-"))
-        base.chmod(0o711)  # children (uid nobody) must traverse it to their own directory
+        base.chmod(0o711)  # children (their own uids) must traverse it to their own directory
         self.scratch_base = str(base)
         weakref.finalize(self, shutil.rmtree, str(base), True)
         if self.network_degraded:
@@ -188,7 +193,8 @@ class Zygote:
             os.ftruncate(cell_fd, _CELL.size)
             cell = mmap.mmap(cell_fd, _CELL.size)
             _CELL.pack_into(cell, 0, -1, 0, 0.0)
-            spec = _SPAWN.pack(limits.memory_mb, limits.cpu_s, limits.nofile, limits.fsize_bytes) + self.scratch_base.encode()
+            spec = (_SPAWN.pack(limits.memory_mb, limits.cpu_s, limits.nofile, limits.fsize_bytes, UID_BASE)
+                    + self.scratch_base.encode())
             try:
                 socket.send_fds(self._ctrl, [spec], [theirs.fileno(), cell_fd])
                 (pid,) = struct.unpack("<i", _recv_exact(self._ctrl, 4))
@@ -592,7 +598,8 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
     from prometheus_client import Gauge
 
     global _GAUGE, _MODE_GAUGE
-    key = repr(sorted((k, v) for k, v in report.items() if k != "scratch"))
+    # (uid and gid differ per child in root mode: not part of what is published once)
+    key = repr(sorted((k, v) for k, v in report.items() if k not in ("scratch", "uid", "gid", "outer_uid")))
     if key in _published:
         return
     _published.add(key)
@@ -602,10 +609,12 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
         _MODE_GAUGE = Gauge("zetta_harness_sandbox_mode",
                             "How harness sandbox children are isolated (1: this mode): root (a distinct uid), "
                             "userns (a user namespace of a non-root host) or degraded.", ["mode"])
-    mode = str(report.get("mode", "root" if report.get("uid") == 65534 else "degraded"))
+    uid = report.get("uid")
+    own_uid = isinstance(uid, int) and uid >= UID_BASE  # root mode: UID_BASE + the child's pid
+    mode = str(report.get("mode", "root" if own_uid else "degraded"))
     no_caps = report.get("capabilities") == 0
-    features = {"unprivileged_user": report.get("uid") == 65534 and (mode == "root" or no_caps),
-                "distinct_uid": mode == "root" and report.get("uid") == 65534,
+    features = {"unprivileged_user": (mode == "root" and own_uid) or (mode == "userns" and uid == 65534 and no_caps),
+                "distinct_uid": mode == "root" and own_uid,
                 "network": bool(report.get("network_isolated")),
                 "filesystem": bool(report.get("chroot")), "no_new_privs": bool(report.get("no_new_privs")),
                 "seccomp": bool(report.get("seccomp"))}
@@ -623,9 +632,9 @@ def _publish_isolation(report: Mapping[str, Any]) -> None:
                  report.get("uid"), report.get("outer_uid"), report.get("filesystem"), report.get("memory_mb"),
                  report.get("cpu_s"), report.get("nofile"))
     else:
-        log.info("harness sandbox: mode %s: uid %s, own empty network namespace, chroot to a private scratch dir, "
-                 "rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp filter", mode, report.get("uid"),
-                 report.get("memory_mb"), report.get("cpu_s"), report.get("nofile"))
+        log.info("harness sandbox: mode %s: a uid of its own per child (%d + its pid), own empty network namespace, "
+                 "chroot to a private scratch dir, rlimits memory %s MB, CPU %s s, %s files, no processes, seccomp "
+                 "filter", mode, UID_BASE, report.get("memory_mb"), report.get("cpu_s"), report.get("nofile"))
 
 
 _GAUGE: Any = None

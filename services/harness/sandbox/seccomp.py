@@ -2,8 +2,8 @@
 
 A classic BPF program installed with ``prctl(PR_SET_SECCOMP, SECCOMP_MODE_FILTER)`` through
 ctypes (no library needed; libseccomp is not a dependency), as the last step of
-services/harness/sandbox/child.py ``jail``, after the child dropped to uid 65534 and set
-no-new-privileges. From then on, and for every call the child makes:
+services/harness/sandbox/child.py ``jail``, after the child dropped to its own uid (root host) or
+its capabilities (user namespace) and set no-new-privileges. From then on, and for every call the child makes:
 
 - a system call of another ABI (i386 through ``int 0x80``, x32) kills the child;
 - :data:`DENIED` fail with EPERM: every socket (the child's channel to its host is already open),
@@ -14,8 +14,9 @@ no-new-privileges. From then on, and for every call the child makes:
 - ``clone3`` fails with ENOSYS, so that the C library falls back to ``clone``, whose flags this
   filter can read (RLIMIT_NPROC 0 refuses the new process or thread anyway);
 - :data:`SELF_ONLY` (kill, tkill, tgkill, rt_sigqueueinfo, rt_tgsigqueueinfo) may target only the
-  child itself: every sandbox child runs as the same uid, so without this one package could
-  signal another session's child (``kill(-1, SIGKILL)`` reaches every process of uid 65534);
+  child itself: the children of a non-root host all run as the host's uid outside their user
+  namespace, so without this one package could signal another session's child (a root host's
+  children each have a uid of their own, 200000 + pid, and the kernel refuses that already);
 - :data:`SELF_OR_ZERO` (prlimit64, sched_set*) may target only the child (pid 0 or its own pid):
   not another child's limits or scheduling.
 

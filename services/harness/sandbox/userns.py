@@ -4,8 +4,8 @@ Three modes, strongest first (services/harness/sandbox/child.py ``jail`` applies
 
 ``root``
     The host runs as root. The zygote leaves the host's network (``unshare(CLONE_NEWNET)``); each
-    child chroots into its scratch directory and drops to uid and gid 65534 (nobody), a uid that
-    differs from the host's.
+    child chroots into its scratch directory and drops to a uid and gid of its own (client.UID_BASE,
+    200000, plus its pid): no host user and no other live child has it.
 
 ``userns``
     The host is not root (the Kubernetes base runs every pod as uid 10001 without capabilities).
