@@ -411,20 +411,57 @@ R_NONE, R_PROPOSAL, R_ERROR = 0, 1, 2
 
 
 def encode_proposal(w: Writer, evidence: str, mode: str, details: Mapping[str, Any]) -> None:
-    w.text(evidence)
-    w.text(mode)
-    w.u32(len(details))
-    for k, v in details.items():
-        w.text(str(k))
-        w.f64(float(v))
+    """``u32 length | head (evidence, mode, detail names) | one f64 per detail``: a critic
+    proposes the same kinds with the same detail names step after step, so the head is built once
+    per distinct kind (child side) and parsed once per distinct head (host side)."""
+    key = (evidence, mode, tuple(details))
+    head = _PROPOSAL_HEADS.get(key)
+    if head is None:
+        h = Writer()
+        h.text(evidence)
+        h.text(mode)
+        h.texts([str(k) for k in key[2]])
+        head = b"".join(h.parts)
+        head = _U32.pack(len(head)) + head
+        if len(_PROPOSAL_HEADS) < 1024:
+            _PROPOSAL_HEADS[key] = head
+    w.parts.append(head)
+    values = [float(v) for v in details.values()]
+    w.parts.append(_doubles(len(values)).pack(*values))
 
 
 def decode_proposal(r: Reader) -> tuple[str, str, dict[str, float]]:
-    evidence, mode = r.text(), r.text()
     n = r.u32()
-    if n > 1024:
-        raise WireError(f"{n} details over the limit of 1024")
-    return evidence, mode, {r.text(): r.f64() for _ in range(n)}
+    if n > 1 << 16:
+        raise WireError(f"proposal head of {n} bytes")
+    head = bytes(r.take(n))
+    parsed = _PARSED_PROPOSALS.get(head)
+    if parsed is None:
+        h = Reader(head)
+        evidence, mode, keys = h.text(), h.text(), tuple(h.texts(1024))
+        h.done()
+        parsed = (evidence, mode, keys)
+        # (Bounded: the heads come from untrusted children. A child that fills it costs every
+        # child of this host a parse per proposal, nothing else.)
+        if len(head) <= 512 and len(_PARSED_PROPOSALS) < 256:
+            _PARSED_PROPOSALS[head] = parsed
+    evidence, mode, keys = parsed
+    values = _doubles(len(keys)).unpack_from(r.buf, r.take_at(8 * len(keys))) if keys else ()
+    return evidence, mode, dict(zip(keys, values))
+
+
+_PROPOSAL_HEADS: dict[tuple[str, str, tuple[Any, ...]], bytes] = {}
+_PARSED_PROPOSALS: dict[bytes, tuple[str, str, tuple[str, ...]]] = {}
+_DOUBLES: dict[int, struct.Struct] = {}
+
+
+def _doubles(n: int) -> struct.Struct:
+    packer = _DOUBLES.get(n)
+    if packer is None:
+        packer = struct.Struct(f"<{n}d")
+        if len(_DOUBLES) < 1024:
+            _DOUBLES[n] = packer
+    return packer
 
 
 def pack_detections(found: Any) -> bytes:
