@@ -32,7 +32,7 @@ LAYOUT = 9      # pickled [(name, dtype string, shape)]: how the observation blo
 # Child -> parent.
 READY = 20      # isolation report after start-up
 LOADED = 21     # critic names and module-level callables, or an error
-RESULTS = 22    # one result per critic run
+RESULTS = 22    # per critic run its result head (RESULT), then the proposals and errors, then the queries asked
 PERCEIVE = 23   # a perception query: frame step, query
 REC_STARTED = 24
 REC_ACTION = 25
