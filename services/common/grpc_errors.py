@@ -105,9 +105,9 @@ def exhausted(message: str, retry_after_ms: int) -> ServiceError:
     return ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED, message, retry_after_ms=retry_after_ms)
 
 
-def unavailable(message: str, session_ids: Sequence[str] = ()) -> ServiceError:
-    """UNAVAILABLE."""
-    return ServiceError(grpc.StatusCode.UNAVAILABLE, message, session_ids)
+def unavailable(message: str, session_ids: Sequence[str] = (), retry_after_ms: int | None = None) -> ServiceError:
+    """UNAVAILABLE (with a retry hint when the caller knows when to come back)."""
+    return ServiceError(grpc.StatusCode.UNAVAILABLE, message, session_ids, retry_after_ms=retry_after_ms)
 
 
 def store_unavailable(exc: BaseException) -> ServiceError:

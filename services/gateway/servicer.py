@@ -194,7 +194,15 @@ class GatewayServicer(gateway_pb2_grpc.GatewayServiceServicer):
             allocated = await self.registry.allocate(family, request.count, lease_ms, config,
                                                      hold_ms=self.cfg.create_timeout_ms, owner=CALLER.get().name)
         except NoWorkerError:
-            hosted = sorted({f for w in await self.registry.workers() if w.alive for f in w.families})
+            workers = await self.registry.workers()
+            silent = sorted(w.worker_id for w in workers if not w.alive and family in w.families)
+            if silent:  # the family is served here, its workers are silent now: a retry may succeed
+                metrics.REJECTED.labels(family, "no_live_worker").inc()
+                raise ge.unavailable(
+                    f"no live worker hosts env family {family!r} right now: {', '.join(silent)} host it but missed "
+                    f"their heartbeats; retry in {self.cfg.retry_after_ms} ms", retry_after_ms=self.cfg.retry_after_ms,
+                ) from None
+            hosted = sorted({f for w in workers if w.alive for f in w.families})
             metrics.REJECTED.labels(family, "unknown_family").inc()
             raise ge.invalid(
                 f"unknown env family {family!r}: no live worker hosts it; hosted families: {', '.join(hosted) or 'none'}"

@@ -112,6 +112,17 @@ async def test_killed_env_worker_sessions_become_lost(stack_factory: Callable[..
         # Closing a LOST session is not an error; it is reported as already gone.
         closed = await gw.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=on0))
         assert sorted(closed.already_closed_session_ids) == sorted(on0)
+
+        # Every worker of the family silent: the family is not unknown, it is unavailable for now.
+        stack.kill("env-1")
+
+        async def all_dead() -> bool:
+            return not any(w.alive for w in await gw.list_workers())
+
+        await eventually(all_dead, timeout=10)
+        err = await expect_error(gw.create_sessions("robosuite", n=1, env_config=LIFT), "UNAVAILABLE")
+        assert "env-0" in err.details and "env-1" in err.details and "heartbeats" in err.details
+        assert err.retry_after_ms and err.retry_after_ms > 0
         assert time.monotonic() - killed_at < 60
 
 
