@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker.busy import busy
 from services.env_worker.metrics import FRAMES
 
 log = logging.getLogger(__name__)
@@ -196,6 +197,10 @@ def _gl_context_class() -> Any:
 
 _RENDERER_LOGGED = False
 
+#: Busy lease (services/env_worker/busy.py) around making a render context: several times the
+#: longest GIL hold measured (3.8 s, LIBERO on two loaded cores), within ZETTA_HEARTBEAT_MAX_BUSY_MS.
+RENDER_CONTEXT_LEASE_MS = 15_000
+
 
 class SceneRenderer:
     """One GL context and MuJoCo render context for one (model, data) pair.
@@ -214,12 +219,15 @@ class SceneRenderer:
         # The offscreen buffer bounds every frame; grow it before the context is made.
         vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
         self._lock = threading.Lock()
-        self._gl = GLContext(vis.offwidth, vis.offheight)
         self._con: Any = None
-        with self._current():
-            self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
-            _log_renderer_once()
+        # MjrContext uploads the model's textures holding the GIL (2.6-3.8 s for a LIBERO scene on
+        # two loaded cores): the worker's heartbeats stop meanwhile, so the gateway is told first.
+        with busy(RENDER_CONTEXT_LEASE_MS, "render context"):
+            self._gl = GLContext(vis.offwidth, vis.offheight)
+            with self._current():
+                self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+                mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+                _log_renderer_once()
         self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 4 * model.ngeom))
         self._camera = mujoco.MjvCamera()
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
