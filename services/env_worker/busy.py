@@ -40,8 +40,9 @@ from services.env_worker import metrics
 
 log = logging.getLogger(__name__)
 
-#: How long a slot waits for the gateway to acknowledge its lease before going ahead anyway.
-ACK_WAIT_S = 1.0
+#: How long a slot waits for the gateway to acknowledge its lease before going ahead anyway (a
+#: heartbeat round trip is milliseconds; on two loaded cores the gateway's loop may take longer).
+ACK_WAIT_S = 2.0
 
 
 class Announcer(Protocol):

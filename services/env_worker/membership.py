@@ -25,7 +25,7 @@ import grpc
 from services.common.tasks import cancel_and_wait
 from services.common.tls import aio_channel
 from zetta_wire.channel import CHANNEL_OPTIONS
-from services.env_worker.busy import LEASES, BusyLeases
+from services.env_worker.busy import ACK_WAIT_S, LEASES, BusyLeases
 from services.env_worker.config import EnvWorkerConfig
 from zetta_wire.v1 import registry_pb2, registry_pb2_grpc
 
@@ -121,7 +121,7 @@ class Membership:
                 log.warning("registry declared this worker dead; registering again")
                 await self.register()
 
-    async def _heartbeat(self) -> registry_pb2.HeartbeatResponse | None:
+    async def _heartbeat(self, timeout_s: float = 0.0) -> registry_pb2.HeartbeatResponse | None:
         """One heartbeat with the busy lease held now; None when it failed."""
         assert self._sending is not None
         async with self._sending:
@@ -129,14 +129,14 @@ class Membership:
             try:
                 return await self._stub.Heartbeat(
                     registry_pb2.HeartbeatRequest(worker_id=self.cfg.worker_id, busy_ms=busy_ms),
-                    timeout=max(self._interval_s, 0.5), metadata=self._md,
+                    timeout=max(self._interval_s, 0.5, timeout_s), metadata=self._md,
                 )
             except grpc.aio.AioRpcError as err:
                 log.warning("heartbeat failed", extra={"fields": {"error": err.code().name, "busy_ms": busy_ms}})
                 return None
 
     async def _announce(self) -> int:
-        resp = await self._heartbeat()
+        resp = await self._heartbeat(ACK_WAIT_S)
         if resp is None:
             return 0
         if not resp.known and self._wake is not None:
