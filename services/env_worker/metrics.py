@@ -32,6 +32,16 @@ FRAMES = Counter(
     "zetta_env_frames_rendered_total",
     "Camera frames rendered (one per camera per rendered state: observations and video frames).", ["camera"],
 )
+BUSY_LEASES = Counter(
+    "zetta_env_busy_leases_total",
+    "Busy leases taken before work that holds the GIL (services/env_worker/busy.py), by what and outcome "
+    "(granted; unacknowledged: the gateway did not answer in time; unannounced; standalone: no membership).",
+    ["what", "outcome"],
+)
+BUSY_LEASE_SECONDS = Histogram(
+    "zetta_env_busy_lease_seconds", "How long each busy lease was held, by what it covered.", ["what"],
+    buckets=(0.05, 0.1, 0.25, 0.5, 1, 2, 4, 8, 15, 30, 60),
+)
 HARNESS_ACTIONS = Counter(
     "zetta_env_harness_actions_total",
     "Actions executed in harnessed episodes, by who chose them (policy or recovery); counted at episode end.",

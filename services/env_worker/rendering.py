@@ -30,6 +30,10 @@ Contexts and threads
     is current on one thread at a time and environments move between slot threads (pool reuse,
     LIBERO task switches), so :class:`SceneRenderer` makes its context current for each batch of
     cameras and releases it afterwards (a few microseconds against milliseconds per frame).
+    Making an ``MjrContext`` uploads the scene's textures; :func:`make_render_context` runs that
+    with the GIL released (the bindings' constructor holds it: 2.6-3.8 s for a LIBERO scene on
+    two loaded cores, during which the worker's heartbeats and other slots stopped), inside a
+    busy lease (services/env_worker/busy.py) in case it has to fall back to the bindings.
 
 Reflections
     ``env_config`` ``reflections: false`` zeroes ``model.mat_reflectance`` of the slot's model
@@ -44,6 +48,7 @@ the families' API does) loads no simulator.
 
 from __future__ import annotations
 
+import ctypes
 import ctypes.util
 import glob
 import logging
@@ -57,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker.busy import busy
 from services.env_worker.metrics import FRAMES
 
 log = logging.getLogger(__name__)
@@ -194,7 +200,133 @@ def _gl_context_class() -> Any:
     return GLContext
 
 
+# ---------------------------------------------------------------------------------------------
+# Render contexts made with the GIL released
+
+#: ctypes types of the C scalars mjrContext is made of (mujoco.introspect names them).
+_C_SCALARS: dict[str, Any] = {"float": ctypes.c_float, "int": ctypes.c_int, "unsigned int": ctypes.c_uint}
+_MAKE_CONTEXT: Any = None
+_MAKE_CONTEXT_LOCK = threading.Lock()
+
+
+def _mjr_context_layout() -> Any:
+    """A ctypes Structure with mjrContext's layout, built from the bindings' own introspection
+    (so it is the layout of the MuJoCo that is loaded); None when a field type is unknown."""
+    from mujoco.introspect import structs
+
+    fields: list[tuple[str, Any]] = []
+    for f in structs.STRUCTS["mjrContext"].fields:
+        kind = type(f.type).__name__
+        if kind == "ValueType" and f.type.name in _C_SCALARS:
+            fields.append((f.name, _C_SCALARS[f.type.name]))
+        elif kind == "ArrayType" and getattr(f.type.inner_type, "name", "") in _C_SCALARS:
+            ctype = _C_SCALARS[f.type.inner_type.name]
+            for extent in reversed(f.type.extents):
+                ctype = ctype * extent
+            fields.append((f.name, ctype))
+        elif kind == "PointerType":
+            fields.append((f.name, ctypes.c_void_p))
+        else:
+            return None
+    return type("MjrContextLayout", (ctypes.Structure,), {"_fields_": fields})
+
+
+def _gil_free_make_context() -> Any:
+    """``(layout, mjr_makeContext)`` through ctypes, which releases the GIL; False where not possible."""
+    global _MAKE_CONTEXT
+    with _MAKE_CONTEXT_LOCK:
+        if _MAKE_CONTEXT is None:
+            _MAKE_CONTEXT = False
+            try:
+                import mujoco
+
+                paths = sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")))
+                paths += sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco*.dylib")))
+                layout = _mjr_context_layout()
+                if paths and layout is not None and hasattr(mujoco.MjModel, "_address"):
+                    fn = ctypes.CDLL(paths[0]).mjr_makeContext
+                    fn.restype = None
+                    fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+                    _MAKE_CONTEXT = (layout, fn)
+            except Exception as exc:  # noqa: BLE001 - the bindings' own constructor still works
+                log.info("rendering: render contexts are made holding the GIL (%s)", exc)
+        return _MAKE_CONTEXT
+
+
+def _context_address(con: Any, layout: Any) -> int | None:
+    """Address of the mjrContext a bindings ``MjrContext`` wraps, or None when it cannot be proven.
+
+    The bindings expose the struct's arrays as numpy views into it: every array field's address
+    less its offset in ``layout`` must name the same struct start, else the layout is not the one
+    the bindings were built with and nothing is written.
+    """
+    import numpy as np
+
+    bases = set()
+    for name, ctype in layout._fields_:
+        if not issubclass(ctype, ctypes.Array):
+            continue
+        view = getattr(con, name, None)
+        if not isinstance(view, np.ndarray) or view.nbytes != ctypes.sizeof(ctype):
+            return None
+        bases.add(view.ctypes.data - getattr(layout, name).offset)
+    return bases.pop() if len(bases) == 1 else None
+
+
+def make_render_context(model: Any, font_scale: int) -> Any:
+    """``mujoco.MjrContext(model, font_scale)`` on the current GL context, made with the GIL released.
+
+    The bindings' constructor runs ``mjr_makeContext`` holding the GIL, and that uploads every
+    texture of the model (2.6-3.8 s for a LIBERO scene on two loaded cores): the worker's event
+    loop, its heartbeats and its other slots stop meanwhile. Here an empty bindings context (no
+    GL work) is made and ``mjr_makeContext`` is called on its struct through ctypes, which
+    releases the GIL: the same function on the same inputs, so the same context and the same
+    frames. Where the struct's address cannot be proven (``_context_address``) the bindings'
+    constructor is used.
+
+    A failure inside ``mjr_makeContext`` called through ctypes would end the process (MuJoCo's
+    default error handler) instead of raising, so the checks that can fail (GL version and
+    extensions, the offscreen buffer's size) are made first through the bindings, on an empty
+    model with the same offscreen size (once per size and process, a few milliseconds): they
+    raise a Python error there.
+    """
+    import mujoco
+
+    made = _gil_free_make_context()
+    if made:
+        layout, fn = made
+        _preflight(model, font_scale)
+        con = mujoco.MjrContext()
+        address = _context_address(con, layout)
+        if address is not None:
+            fn(model._address, address, int(font_scale))
+            return con
+    return mujoco.MjrContext(model, font_scale)
+
+
+#: Offscreen sizes (and font scales) a render context was made for through the bindings.
+_PREFLIGHTS: set[tuple[int, int, int]] = set()
+
+
+def _preflight(model: Any, font_scale: int) -> None:
+    """Make and free a context of an empty model with ``model``'s offscreen size, through the bindings."""
+    import mujoco
+
+    vis = model.vis.global_
+    key = (int(vis.offwidth), int(vis.offheight), int(font_scale))
+    if key in _PREFLIGHTS:
+        return
+    empty = mujoco.MjModel.from_xml_string(
+        f"<mujoco><visual><global offwidth='{key[0]}' offheight='{key[1]}'/></visual></mujoco>")
+    mujoco.MjrContext(empty, font_scale).free()
+    _PREFLIGHTS.add(key)
+
+
 _RENDERER_LOGGED = False
+
+#: Busy lease (services/env_worker/busy.py) around making a render context: several times the
+#: longest GIL hold measured (3.8 s, LIBERO on two loaded cores), within ZETTA_HEARTBEAT_MAX_BUSY_MS.
+RENDER_CONTEXT_LEASE_MS = 15_000
 
 
 class SceneRenderer:
@@ -214,12 +346,16 @@ class SceneRenderer:
         # The offscreen buffer bounds every frame; grow it before the context is made.
         vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
         self._lock = threading.Lock()
-        self._gl = GLContext(vis.offwidth, vis.offheight)
         self._con: Any = None
-        with self._current():
-            self._con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
-            _log_renderer_once()
+        # MjrContext uploads the model's textures (2.6-3.8 s for a LIBERO scene on two loaded cores).
+        # make_render_context releases the GIL for it; where it falls back to the bindings (which
+        # hold it) the worker's heartbeats stop meanwhile, so the gateway is told first.
+        with busy(RENDER_CONTEXT_LEASE_MS, "render context"):
+            self._gl = GLContext(vis.offwidth, vis.offheight)
+            with self._current():
+                self._con = make_render_context(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+                mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+                _log_renderer_once()
         self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 4 * model.ngeom))
         self._camera = mujoco.MjvCamera()
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -406,9 +542,10 @@ class SlotRenderer:
     def warm(self) -> None:
         """Make the render context now if the slot has cameras and an environment.
 
-        Creating it uploads the model's textures (about 1 s on the CPU renderer, during which
-        MuJoCo holds the GIL), so the worker does it while opening slots, where environment
-        builds already take their time, instead of inside the first reset.
+        Creating it uploads the model's textures (1-4 s for a LIBERO scene on the CPU renderer;
+        the GIL is released meanwhile, :func:`make_render_context`), so the worker does it while
+        opening slots, where environment builds already take their time, instead of inside the
+        first reset.
         """
         if self.cameras and self._env() is not None:
             self.scene()

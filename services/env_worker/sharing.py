@@ -46,6 +46,8 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker.busy import busy
+
 log = logging.getLogger(__name__)
 
 _COPY_MODEL: Any = None
@@ -79,7 +81,8 @@ def copy_model(model: Any) -> Any:
         ptr = fn(None, model._address)
         if ptr:
             return mujoco.MjModel._from_model_ptr(ptr)
-    return copy.copy(model)
+    with busy(5_000, "model copy"):  # holds the GIL (0.15-0.4 s for a LIBERO scene)
+        return copy.copy(model)
 
 
 def model_key(xml: str) -> str:

@@ -19,6 +19,8 @@ class GatewayConfig:
     redis_prefix: str
     heartbeat_interval_ms: int
     heartbeat_timeout_ms: int
+    #: Longest busy lease a worker's heartbeat may ask for (0: leases are refused, capped to none).
+    heartbeat_max_busy_ms: int
     default_lease_seconds: int
     max_lease_seconds: int
     max_sessions_per_call: int
@@ -46,6 +48,7 @@ class GatewayConfig:
             redis_prefix=env.str("ZETTA_REDIS_PREFIX", "zetta"),
             heartbeat_interval_ms=hb_interval,
             heartbeat_timeout_ms=env.int("ZETTA_HEARTBEAT_TIMEOUT_MS", 3 * hb_interval, minimum=100),
+            heartbeat_max_busy_ms=env.int("ZETTA_HEARTBEAT_MAX_BUSY_MS", 30_000, minimum=0, maximum=3_600_000),
             default_lease_seconds=env.int("ZETTA_DEFAULT_LEASE_SECONDS", 600, minimum=1),
             max_lease_seconds=env.int("ZETTA_MAX_LEASE_SECONDS", 86400, minimum=1),
             max_sessions_per_call=env.int("ZETTA_MAX_SESSIONS_PER_CALL", 1024, minimum=1, maximum=100_000),

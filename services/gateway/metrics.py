@@ -14,6 +14,12 @@ FREE_SLOTS = Gauge("zetta_env_worker_free_slots", "Free slots of each live env w
 MISSED_HEARTBEATS = Counter(
     "zetta_gateway_missed_heartbeats_total", "Monitor ticks that found a worker's heartbeat late.", ["worker"]
 )
+BUSY_LEASES = Counter(
+    "zetta_gateway_busy_leases_total",
+    "Heartbeats that carried a busy lease (a worker about to hold its GIL), by outcome (granted, capped "
+    "at ZETTA_HEARTBEAT_MAX_BUSY_MS).",
+    ["outcome"],
+)
 WORKERS_DEAD = Counter("zetta_gateway_workers_declared_dead_total", "Workers declared dead after missing heartbeats.")
 SESSIONS_LOST = Counter("zetta_gateway_sessions_lost_total", "Sessions marked LOST because their worker died.")
 LEASES_EXPIRED = Counter("zetta_gateway_leases_expired_total", "Sessions closed because their lease ran out.")

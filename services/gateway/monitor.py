@@ -1,5 +1,9 @@
 """Background duties of the gateway: dead-worker detection, lease expiry, session gauges.
 
+A worker is dead when its heartbeat key expired: the key lives the heartbeat timeout after each
+heartbeat, or until the end of the busy lease that heartbeat asked for when that is later
+(services/env_worker/busy.py), so the judgment is max(last heartbeat + timeout, lease end).
+
 Every gateway replica runs these loops; the Lua scripts they call re-check their condition
 atomically, so two replicas racing on the same worker or lease do the work once.
 """
@@ -14,7 +18,7 @@ from services.common.grpc_errors import STORE_ERRORS
 from services.common.tasks import cancel_and_wait
 from services.gateway import metrics
 from services.gateway.config import GatewayConfig
-from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, now_ms
+from services.gateway.registry import CREATE, LOST, RUNNING, TERMINATED, Registry, WorkerRecord, now_ms
 from services.gateway.servicer import GatewayServicer
 from services.gateway.vantage import Vantage
 
@@ -85,15 +89,13 @@ class Monitor:
         now = now_ms()
         for w in workers:
             if w.alive:
-                if now - w.last_hb_ms > 1.5 * self.cfg.heartbeat_interval_ms:
+                # Inside a busy lease silence is announced, not missed.
+                if now - w.last_hb_ms > 1.5 * self.cfg.heartbeat_interval_ms and now >= w.busy_until_ms:
                     metrics.MISSED_HEARTBEATS.labels(w.worker_id).inc()
                 continue
             if not judging:
                 continue
-            lost = await self.registry.mark_dead(
-                w.worker_id,
-                f"env worker {w.worker_id} missed its heartbeats for {self.cfg.heartbeat_timeout_ms} ms",
-            )
+            lost = await self.registry.mark_dead(w.worker_id, self.death_reason(w))
             if lost is None:
                 continue
             metrics.WORKERS_DEAD.inc()
@@ -102,6 +104,14 @@ class Monitor:
             log.warning("worker declared dead", extra={"fields": {"worker": w.worker_id, "lost_sessions": lost}})
             lost_all.extend(lost)
         return lost_all
+
+    def death_reason(self, w: WorkerRecord) -> str:
+        """Why a silent worker's sessions are LOST (a busy lease that ran out is named)."""
+        reason = f"env worker {w.worker_id} missed its heartbeats for {self.cfg.heartbeat_timeout_ms} ms"
+        busy_ms = w.busy_until_ms - w.last_hb_ms
+        if w.busy_until_ms and busy_ms > self.cfg.heartbeat_timeout_ms:
+            reason = f"env worker {w.worker_id} sent no heartbeat within its busy lease of {busy_ms} ms"
+        return reason
 
     async def expire_leases(self) -> list[str]:
         """Close every session whose lease ran out and free its slot."""

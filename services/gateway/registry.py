@@ -7,8 +7,10 @@ twice, and a LOST session never frees a slot on a dead worker.
 
 Keys (``P`` is the prefix):
   P:workers                  set of worker ids
-  P:worker:<id>              hash: address, families, slots, free, alive, last_hb_ms
-  P:hb:<id>                  string with a TTL; its existence is the heartbeat
+  P:worker:<id>              hash: address, families, slots, free, alive, last_hb_ms, busy_until_ms
+                             (end of the busy lease the last heartbeat asked for; 0: none)
+  P:hb:<id>                  string with a TTL; its existence is the heartbeat. The TTL is the
+                             heartbeat timeout, or the busy lease when that is longer
   P:worker:<id>:sessions     set of live session ids on the worker
   P:session:<sid>            hash: family, config, worker, owner, state, lease_ms, expires_ms, reason,
                              action_dtype, action_shape, action_bounds ("low,high", either
@@ -176,17 +178,23 @@ for _, sid in ipairs(lost) do
 end
 redis.call('SADD', p .. ':workers', w)
 redis.call('HSET', wk, 'address', ARGV[3], 'families', ARGV[4], 'slots', slots,
-  'free', slots - #kept, 'alive', '1', 'last_hb_ms', ARGV[7])
+  'free', slots - #kept, 'alive', '1', 'last_hb_ms', ARGV[7], 'busy_until_ms', 0)
 redis.call('SET', p .. ':hb:' .. w, ARGV[7], 'PX', tonumber(ARGV[6]))
 return kept
 """
 
 _HEARTBEAT = """
--- ARGV: prefix, worker, hb_ttl_ms, now_ms
+-- ARGV: prefix, worker, hb_ttl_ms, now_ms, busy_ms
+-- The key lives until the later of now + timeout and the end of the busy lease (now + busy_ms);
+-- a heartbeat without a lease (busy_ms 0) sets it back to the timeout, ending an earlier lease.
 local wk = ARGV[1] .. ':worker:' .. ARGV[2]
 if redis.call('HGET', wk, 'alive') ~= '1' then return 0 end
-redis.call('SET', ARGV[1] .. ':hb:' .. ARGV[2], ARGV[4], 'PX', tonumber(ARGV[3]))
-redis.call('HSET', wk, 'last_hb_ms', ARGV[4])
+local now = tonumber(ARGV[4])
+local busy = tonumber(ARGV[5])
+redis.call('SET', ARGV[1] .. ':hb:' .. ARGV[2], ARGV[4], 'PX', math.max(tonumber(ARGV[3]), busy))
+local busy_until = 0
+if busy > 0 then busy_until = now + busy end
+redis.call('HSET', wk, 'last_hb_ms', ARGV[4], 'busy_until_ms', busy_until)
 return 1
 """
 
@@ -287,6 +295,8 @@ class WorkerRecord:
     free: int
     alive: bool
     last_hb_ms: int
+    #: End of the busy lease the last heartbeat asked for (wall-clock ms); 0 when it asked for none.
+    busy_until_ms: int = 0
 
 
 class Registry:
@@ -442,9 +452,16 @@ class Registry:
         )
         return [_s(k) for k in kept]
 
-    async def heartbeat(self, worker_id: str, hb_ttl_ms: int) -> bool:
-        """Refresh the heartbeat key; False if the worker was declared dead."""
-        return bool(int(await self._heartbeat(args=[self.p, worker_id, hb_ttl_ms, now_ms()])))
+    async def heartbeat(self, worker_id: str, hb_ttl_ms: int, busy_ms: int = 0) -> bool:
+        """Refresh the heartbeat key; False if the worker was declared dead.
+
+        ``busy_ms`` > 0 is a busy lease: the key lives ``max(hb_ttl_ms, busy_ms)`` from now, so the
+        worker is judged alive until the later of its heartbeat timeout and the lease's end. The
+        caller bounds it (the servicer caps it at ZETTA_HEARTBEAT_MAX_BUSY_MS).
+        """
+        if busy_ms < 0:
+            raise ValueError(f"busy_ms must be >= 0, got {busy_ms}")
+        return bool(int(await self._heartbeat(args=[self.p, worker_id, hb_ttl_ms, now_ms(), busy_ms])))
 
     async def deregister(self, worker_id: str) -> list[str]:
         """Remove a draining worker now instead of waiting for its heartbeat to expire."""
@@ -473,12 +490,13 @@ class Registry:
         ids = await self.worker_ids()
         pipe = self.r.pipeline(transaction=False)
         for w in ids:
-            pipe.hmget(f"{self.p}:worker:{w}", "address", "families", "slots", "free", "alive", "last_hb_ms")
+            pipe.hmget(f"{self.p}:worker:{w}", "address", "families", "slots", "free", "alive", "last_hb_ms",
+                       "busy_until_ms")
             pipe.exists(f"{self.p}:hb:{w}")
         rows = await pipe.execute()
         out = []
         for i, w in enumerate(ids):
-            address, families, slots, free, alive, last = (_s(v) if v is not None else "" for v in rows[2 * i])
+            address, families, slots, free, alive, last, busy = (_s(v) if v is not None else "" for v in rows[2 * i])
             out.append(
                 WorkerRecord(
                     worker_id=w,
@@ -488,6 +506,7 @@ class Registry:
                     free=int(free or 0),
                     alive=alive == "1" and bool(rows[2 * i + 1]),
                     last_hb_ms=int(last or 0),
+                    busy_until_ms=int(busy or 0),
                 )
             )
         return out

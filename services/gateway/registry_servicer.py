@@ -6,6 +6,7 @@ import logging
 
 from services.common import grpc_errors as ge
 from services.common.grpc_errors import error_boundary
+from services.gateway import metrics
 from services.gateway.auth import Authenticator
 from services.gateway.config import GatewayConfig
 from services.gateway.registry import Registry
@@ -55,12 +56,27 @@ class WorkerRegistryServicer(registry_pb2_grpc.WorkerRegistryServiceServicer):
     @error_boundary
     async def Heartbeat(self, request, context) -> registry_pb2.HeartbeatResponse:
         self.auth.worker(context)
+        busy_ms = self.busy_lease_ms(request.busy_ms)
         try:
-            known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms)
+            known = await self.registry.heartbeat(request.worker_id, self.cfg.heartbeat_timeout_ms, busy_ms)
         except ge.STORE_ERRORS as exc:
             self.vantage.blind(f"redis: a heartbeat of {request.worker_id} could not be written: {exc}")
             raise
-        return registry_pb2.HeartbeatResponse(known=known)
+        if busy_ms and known:
+            metrics.BUSY_LEASES.labels("capped" if busy_ms < request.busy_ms else "granted").inc()
+            log.debug("busy lease", extra={"fields": {"worker": request.worker_id, "busy_ms": busy_ms,
+                                                      "asked_ms": request.busy_ms}})
+        return registry_pb2.HeartbeatResponse(known=known, busy_ms=busy_ms if known else 0)
+
+    def busy_lease_ms(self, asked_ms: int) -> int:
+        """The busy lease a heartbeat gets: the one it asked for, at most ZETTA_HEARTBEAT_MAX_BUSY_MS.
+
+        A lease shorter than the heartbeat timeout changes nothing and is kept as asked (the key
+        lives the longer of the two); a negative one is refused.
+        """
+        if asked_ms < 0:
+            raise ge.invalid(f"busy_ms must be >= 0, got {asked_ms}")
+        return min(asked_ms, self.cfg.heartbeat_max_busy_ms)
 
     @error_boundary
     async def DeregisterWorker(self, request, context) -> registry_pb2.DeregisterWorkerResponse:
