@@ -8,7 +8,10 @@ that needs more cannot pass silently:
 - ``namespace``: set on every namespaced object (and as the name of a Namespace object);
 - ``images``: ``name`` -> ``newName`` / ``newTag`` for containers and initContainers;
 - ``patches``: inline RFC 6902 JSON patches (add, remove, replace, test) with a ``target`` of
-  group / version / kind / name.
+  group / version / kind / name;
+- ``configMapGenerator``: ``name``, ``files`` (``path`` or ``key=path``, relative to the
+  kustomization directory and inside it) and ``options.labels``, with ``generatorOptions``
+  ``disableNameSuffixHash: true`` (the content-hash suffix is not implemented, so it is refused).
 
 Where ``kubectl kustomize`` exists, tests/deploy renders with both and requires the same objects.
 """
@@ -21,7 +24,8 @@ from typing import Any
 
 import yaml
 
-SUPPORTED = {"apiVersion", "kind", "resources", "namespace", "images", "patches"}
+SUPPORTED = {"apiVersion", "kind", "resources", "namespace", "images", "patches", "configMapGenerator",
+             "generatorOptions"}
 CLUSTER_SCOPED = {"Namespace", "ClusterRole", "ClusterRoleBinding", "PriorityClass", "StorageClass",
                   "CustomResourceDefinition", "PersistentVolume"}
 
@@ -44,6 +48,7 @@ def render(directory: Path) -> list[dict[str, Any]]:
             objects.extend(render(path))
         else:
             objects.extend(d for d in yaml.safe_load_all(path.read_text()) if d)
+    objects.extend(_generate_config_maps(spec, directory))
     for patch in spec.get("patches", []):
         _apply_patch(objects, patch, directory)
     for image in spec.get("images", []):
@@ -55,6 +60,30 @@ def render(directory: Path) -> list[dict[str, Any]]:
             elif obj["kind"] not in CLUSTER_SCOPED:
                 obj["metadata"]["namespace"] = spec["namespace"]
     return objects
+
+
+def _generate_config_maps(spec: dict[str, Any], directory: Path) -> list[dict[str, Any]]:
+    generators = spec.get("configMapGenerator", [])
+    options = spec.get("generatorOptions", {})
+    if generators and options != {"disableNameSuffixHash": True}:
+        raise KustomizeError(f"{directory}: only generatorOptions {{disableNameSuffixHash: true}} is supported")
+    out = []
+    for gen in generators:
+        if set(gen) - {"name", "files", "options"} or set(gen.get("options", {})) - {"labels"}:
+            raise KustomizeError(f"{directory}: unsupported configMapGenerator fields in {gen}")
+        data = {}
+        for entry in gen.get("files", []):
+            name, sep, rel = entry.partition("=")
+            rel = rel if sep else name
+            path = (directory / rel).resolve()
+            if not path.is_relative_to(directory.resolve()):
+                raise KustomizeError(f"{directory}: {rel} is outside the kustomization (kustomize refuses it)")
+            data[Path(name).name if not sep else name] = path.read_text()
+        metadata: dict[str, Any] = {"name": gen["name"]}
+        if gen.get("options", {}).get("labels"):
+            metadata["labels"] = dict(gen["options"]["labels"])
+        out.append({"apiVersion": "v1", "kind": "ConfigMap", "metadata": metadata, "data": data})
+    return out
 
 
 def _matches(obj: dict[str, Any], target: dict[str, Any]) -> bool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import time
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -355,7 +356,7 @@ def test_kubernetes_manifests_follow_the_rules(overlay: Path) -> None:
     assert redis_url.hostname in by_kind["Service"]
     assert redis_url.password == "$(REDIS_PASSWORD)", "the gateway dials Redis with its password"
     # Ingress is denied by default; every Deployment's pods have a policy of their own.
-    policies = by_kind["NetworkPolicy"]
+    policies = {n: p for n, p in by_kind["NetworkPolicy"].items() if p["metadata"]["namespace"] == "zetta"}
     assert policies["default-deny-ingress"]["spec"]["podSelector"] == {}
     for name in deployments:
         assert any(p["spec"]["podSelector"].get("matchLabels", {}).items()
@@ -374,6 +375,176 @@ def test_kubernetes_manifests_follow_the_rules(overlay: Path) -> None:
     else:
         assert gpu is None
         assert image == "zetta/policy-worker", image
+
+
+# ---- the seccomp profile installer (deploy/seccomp) ------------------------------------------------
+
+#: Where the kubelet reads Localhost seccomp profiles (its --root-dir is /var/lib/kubelet).
+KUBELET_SECCOMP = "/var/lib/kubelet/seccomp"
+INSTALLER_NAMESPACE = "zetta-node"
+
+
+def _pod_templates(objects: list[dict[str, Any]]) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """(object, pod spec) for every object with a pod template."""
+    return [(o, o["spec"]["template"]["spec"]) for o in objects if "template" in o.get("spec", {})]
+
+
+def _installer(objects: list[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """The installer's DaemonSet, its pod spec and its container; there is exactly one."""
+    daemonsets = [o for o in objects if o["kind"] == "DaemonSet"]
+    assert [(d["metadata"]["namespace"], d["metadata"]["name"]) for d in daemonsets] == [
+        (INSTALLER_NAMESPACE, "seccomp-profile-installer")]
+    pod = daemonsets[0]["spec"]["template"]["spec"]
+    assert len(pod["containers"]) == 1 and not pod.get("initContainers")
+    return daemonsets[0], pod, pod["containers"][0]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS, ids=lambda p: p.name)
+def test_seccomp_installer_writes_the_profile_the_pods_name(overlay: Path) -> None:
+    """The installer's ConfigMap holds exactly the profiles of deploy/seccomp, byte for byte; it copies
+    them from that ConfigMap's mount into a hostPath of exactly the kubelet's seccomp directory, under
+    their own names; and every Localhost profile a pod of the overlay names is one of those files."""
+    objects = _render(overlay)
+    _, pod, container = _installer(objects)
+    volumes = {v["name"]: v for v in pod["volumes"]}
+    mounts = {m["name"]: m for m in container["volumeMounts"]}
+    assert set(volumes) == set(mounts)
+    env = {e["name"]: e["value"] for e in container["env"]}
+    # The ConfigMap, mounted whole (no items: a file's name on the node is its key).
+    (cm_volume,) = [v for v in volumes.values() if "configMap" in v]
+    assert "items" not in cm_volume["configMap"]
+    (config_map,) = [o for o in objects if o["kind"] == "ConfigMap" and o["metadata"]["namespace"] == INSTALLER_NAMESPACE
+                     and o["metadata"]["name"] == cm_volume["configMap"]["name"]]
+    shipped = {p.name: p.read_text() for p in sorted((DEPLOY / "seccomp").glob("*.json"))}
+    assert config_map["data"] == shipped
+    assert config_map["data"][SANDBOX_PROFILE.name] == SANDBOX_PROFILE.read_text()
+    assert env["SRC"] == mounts[cm_volume["name"]]["mountPath"] and mounts[cm_volume["name"]]["readOnly"] is True
+    # The one host path: the kubelet's seccomp directory, where the script writes.
+    (host_volume,) = [v for v in volumes.values() if "hostPath" in v]
+    assert host_volume["hostPath"] == {"path": KUBELET_SECCOMP, "type": "DirectoryOrCreate"}
+    assert env["DEST"] == mounts[host_volume["name"]]["mountPath"]
+    assert not mounts[host_volume["name"]].get("subPath")
+    # What the pods ask the kubelet for, relative to its seccomp directory: a file the installer writes.
+    wanted = set()
+    for _, spec in _pod_templates(objects):
+        contexts = [spec.get("securityContext", {})] + [c.get("securityContext", {}) for c in
+                                                        spec["containers"] + spec.get("initContainers", [])]
+        for sc in contexts:
+            if sc.get("seccompProfile", {}).get("type") == "Localhost":
+                wanted.add(sc["seccompProfile"]["localhostProfile"])
+    assert wanted == {SANDBOX_PROFILE.name}
+    assert wanted <= set(config_map["data"])
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS, ids=lambda p: p.name)
+def test_only_the_installer_namespace_is_privileged(overlay: Path) -> None:
+    """zetta-node enforces the privileged Pod Security level and holds only the installer (its
+    DaemonSet, ConfigMap and deny-all NetworkPolicy); every other namespace enforces restricted; no
+    pod outside zetta-node has a host path, host namespaces, root or privilege."""
+    objects = _render(overlay)
+    namespaces = {o["metadata"]["name"]: o["metadata"].get("labels", {}) for o in objects if o["kind"] == "Namespace"}
+    assert set(namespaces) == {"zetta", INSTALLER_NAMESPACE}
+    for name, labels in namespaces.items():
+        level = "privileged" if name == INSTALLER_NAMESPACE else "restricted"
+        assert labels.get("pod-security.kubernetes.io/enforce") == level, name
+    in_node_ns = {(o["kind"], o["metadata"]["name"]) for o in objects
+                  if o["kind"] != "Namespace" and o["metadata"].get("namespace") == INSTALLER_NAMESPACE}
+    assert in_node_ns == {("DaemonSet", "seccomp-profile-installer"), ("ConfigMap", "seccomp-profiles"),
+                          ("NetworkPolicy", "default-deny")}
+    for obj in objects:
+        if obj["kind"] != "Namespace" and "namespace" in obj["metadata"]:
+            assert obj["metadata"]["namespace"] in namespaces, kustomize_lite.key(obj)
+    for obj, pod in _pod_templates(objects):
+        if obj["metadata"]["namespace"] == INSTALLER_NAMESPACE:
+            continue
+        name = obj["metadata"]["name"]
+        assert not any("hostPath" in v for v in pod.get("volumes", [])), name
+        assert not (pod.get("hostNetwork") or pod.get("hostPID") or pod.get("hostIPC")), name
+        assert pod["securityContext"]["runAsNonRoot"] is True, name
+        for c in pod["containers"] + pod.get("initContainers", []):
+            assert not c["securityContext"].get("privileged"), name
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS, ids=lambda p: p.name)
+def test_seccomp_installer_is_minimal_and_runs_everywhere(overlay: Path) -> None:
+    """Root only for the root-owned directory: no capability, no privilege, no escalation, a read-only
+    root filesystem, RuntimeDefault seccomp, no host namespaces, no service-account token, requests
+    and limits, no network (deny-all both ways); it tolerates every taint and is ready once the
+    node's files match; its image is the pinned Redis image the base already pulls."""
+    objects = _render(overlay)
+    _, pod, container = _installer(objects)
+    assert pod.get("automountServiceAccountToken") is False
+    assert not (pod.get("hostNetwork") or pod.get("hostPID") or pod.get("hostIPC"))
+    assert pod["securityContext"]["seccompProfile"] == {"type": "RuntimeDefault"}
+    assert pod["tolerations"] == [{"operator": "Exists"}]
+    assert not pod.get("nodeSelector") and not pod.get("affinity")
+    sc = container["securityContext"]
+    assert sc["readOnlyRootFilesystem"] is True and sc["allowPrivilegeEscalation"] is False
+    assert sc.get("privileged") is False and sc["capabilities"] == {"drop": ["ALL"]}
+    assert container["resources"]["requests"] and container["resources"]["limits"]
+    assert container["readinessProbe"]["exec"]["command"]
+    images = {c["image"] for o, p in _pod_templates(objects) if o["kind"] == "Deployment" for c in p["containers"]}
+    assert container["image"] in images and container["image"].startswith("redis:")
+    assert container["image"].split(":")[1][0].isdigit()
+    (policy,) = [o for o in objects if o["kind"] == "NetworkPolicy" and o["metadata"]["namespace"] == INSTALLER_NAMESPACE]
+    assert policy["spec"] == {"podSelector": {}, "policyTypes": ["Ingress", "Egress"]}
+
+
+def test_seccomp_installer_script(tmp_path: Path) -> None:
+    """The installer's script, run here by /bin/sh: it replaces a stale profile by renaming a complete
+    temporary file over it (a new inode, mode 0644, no temporary file left, stale ones removed), the
+    readiness probe fails before and passes after, a changed ConfigMap file and a deleted node file are
+    put right on the next round, and SIGTERM ends it at once with status 0."""
+    for cmd in ("cmp", "mktemp"):
+        if shutil.which(cmd) is None:
+            pytest.skip(f"{cmd} not installed")
+    _, _, container = _installer(_render(OVERLAYS[0]))
+    assert container["command"] == ["/bin/sh", "-c"]
+    script = container["args"][0]
+    probe = container["readinessProbe"]["exec"]["command"]
+    src, dest = tmp_path / "profiles", tmp_path / "seccomp"
+    src.mkdir()
+    dest.mkdir()
+    (src / SANDBOX_PROFILE.name).write_text(SANDBOX_PROFILE.read_text())
+    (src / "other.json").write_text('{"defaultAction": "SCMP_ACT_ALLOW"}\n')
+    (dest / SANDBOX_PROFILE.name).write_text("{}\n")
+    (dest / ".zetta-install.stale1").write_text("half")
+    stale_inode = (dest / SANDBOX_PROFILE.name).stat().st_ino
+    env = {"PATH": "/usr/bin:/bin", "SRC": str(src), "DEST": str(dest), "INTERVAL": "0.2"}
+
+    def ready() -> bool:
+        return subprocess.run(probe, env=env, timeout=10).returncode == 0
+
+    def wait_until(cond: Any) -> None:
+        deadline = time.monotonic() + 10
+        while not cond():
+            assert time.monotonic() < deadline, "the installer did not converge"
+            time.sleep(0.05)
+
+    assert not ready()
+    proc = subprocess.Popen(["/bin/sh", "-c", script], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        wait_until(ready)
+        target = dest / SANDBOX_PROFILE.name
+        assert target.read_text() == SANDBOX_PROFILE.read_text()
+        assert target.stat().st_ino != stale_inode, "the profile was rewritten in place, not renamed over"
+        assert target.stat().st_mode & 0o777 == 0o644
+        assert (dest / "other.json").read_text() == (src / "other.json").read_text()
+        assert sorted(p.name for p in dest.iterdir()) == sorted([SANDBOX_PROFILE.name, "other.json"])
+        (src / "other.json").write_text('{"defaultAction": "SCMP_ACT_ERRNO"}\n')
+        wait_until(lambda: (dest / "other.json").read_text() == (src / "other.json").read_text())
+        target.unlink()
+        wait_until(lambda: target.exists() and target.read_text() == SANDBOX_PROFILE.read_text())
+        assert ready()
+        proc.terminate()
+        assert proc.wait(timeout=5) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out = proc.stdout.read() if proc.stdout else ""
+    assert f"installed {dest}/{SANDBOX_PROFILE.name}" in out
 
 
 # ---- proto -----------------------------------------------------------------------------------------
