@@ -112,3 +112,27 @@ def policy_env_config(model: str) -> dict[str, Any]:
         return {}
     doc = json.loads((default_checkpoint() / "config.json").read_text())
     return render_config([TensorSpec(i["name"], i["dtype"], tuple(i["shape"])) for i in doc["inputs"]])
+
+
+def training_init_states(checkpoint: str | Path | None) -> dict[str, list[int]]:
+    """LIBERO init states per suite that a checkpoint's demonstrations came from (its data recipes;
+    {} for a checkpoint that records none). A reported number must start from others."""
+    config = Path(checkpoint) / "config.json" if checkpoint else None
+    if config is None or not config.is_file():
+        return {}
+    doc = json.loads(config.read_text())
+    out: dict[str, set[int]] = {}
+    for r in doc.get("data", {}).get("recipes", []):
+        recipe = r.get("recipe", r)
+        n = recipe.get("max_episodes") or recipe["seeds_per_task"] * len(recipe["tasks"])
+        per_task = -(-n // len(recipe["tasks"]))
+        seeds = range(recipe["seed_offset"], recipe["seed_offset"] + per_task)
+        out.setdefault(recipe["suite"], set()).update(s % 50 for s in seeds)
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def trained_layouts(model: str, suite: str) -> list[int]:
+    """Init states of ``suite``'s layouts that ``model`` was trained on: a LIBERO-PRO variant
+    (libero_goal_swap, _task, _lan, _object) starts from its base suite's init states."""
+    base = "_".join(suite.split("_")[:2])
+    return training_init_states(checkpoint_dir(model)).get(base, [])

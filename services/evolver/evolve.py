@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common.policies import policy_env_config
+from services.common.policies import policy_env_config, trained_layouts
 from services.evolver.cluster import Cluster, ClusterParams, cluster_failures
 from services.evolver.consolidate import consolidate
 from services.evolver.controls import arm
@@ -156,9 +156,10 @@ class Evolution:
 
     def run(self) -> None:
         """Every round for every task, then the final measurement on the test seeds."""
+        trained = trained_layouts(self.run_cfg.model, self.cfg.suite)
         for task in self.cfg.tasks:
             self.store.assign_splits(self.cfg.suite, task, self.cfg.dev_seeds, self.cfg.heldout_seeds,
-                                     self.cfg.test_seeds)
+                                     self.cfg.test_seeds, trained)
         for round_ in range(1, self.cfg.rounds + 1):
             for task in self.cfg.tasks:
                 if any(e["round"] == round_ and e["task"] == task and e["suite"] == self.cfg.suite
@@ -521,7 +522,7 @@ def evaluate_transfer(store: RolloutStore, run: RunConfig, suite: str, tasks: Se
                "control": Runner(store, control, env_config(suite, control))}
     out = []
     for task in tasks:
-        store.assign_splits(suite, task, 0, 0, seeds)
+        store.assign_splits(suite, task, 0, 0, seeds, trained_layouts(run.model, suite))
         held = store.seeds(suite, task, TEST)
         res: dict[str, list[Rollout]] = {}
         for label, ref, purpose in (("bare", "", "test"), ("harness", harness, "test"),

@@ -18,7 +18,7 @@ import shutil
 import sqlite3
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -146,10 +146,12 @@ class RolloutStore:
 
     # ---- splits ----------------------------------------------------------------------------
 
-    def assign_splits(self, suite: str, task: str, dev: int, heldout: int, test: int = 0
-                      ) -> tuple[list[int], list[int]]:
-        """Fix the splits of a task once: test seeds first (1..test), then held-out (gate) seeds,
-        then dev seeds, each on an initial state no other seed of the task uses. Idempotent: a task
+    def assign_splits(self, suite: str, task: str, dev: int, heldout: int, test: int = 0,
+                      trained: Collection[int] = ()) -> tuple[list[int], list[int]]:
+        """Fix the splits of a task once: test seeds first, then held-out (gate) seeds, then dev
+        seeds, each on an initial state no other seed of the task uses. Test seeds take initial
+        states outside ``trained`` (the layouts the policy's demonstrations came from) while there
+        are any, so the reported number starts from layouts the policy never saw. Idempotent: a task
         that has splits keeps them and only grows to the asked sizes with fresh initial states.
         Budgets that cannot be disjoint (more seeds than LIBERO's 50 initial states) are refused.
         Returns (dev, held-out); :meth:`seeds` gives the test seeds."""
@@ -163,15 +165,17 @@ class RolloutStore:
                 "splits must not share one: lower --dev-seeds, --heldout-seeds or --test-seeds")
         for split in (TEST, HELDOUT, DEV):
             while len(have[split]) < want[split]:
-                seed = self._fresh_seed(suite, task)
+                seed = (self._fresh_seed(suite, task, avoid=trained) if split == TEST else None) \
+                    or self._fresh_seed(suite, task)
                 assert seed is not None  # the budget check above leaves an initial state for every seed
                 self._insert_seed(suite, task, seed, split)
                 have[split].append(seed)
         return sorted(have[DEV]), sorted(have[HELDOUT])
 
-    def _fresh_seed(self, suite: str, task: str) -> int | None:
-        """The smallest seed whose initial state no seed of the task uses (None when all 50 are taken)."""
-        states = {s % INIT_STATES for s in self._all_seeds(suite, task)}
+    def _fresh_seed(self, suite: str, task: str, avoid: Collection[int] = ()) -> int | None:
+        """The smallest seed whose initial state no seed of the task uses and ``avoid`` does not
+        name (None when none is left)."""
+        states = {s % INIT_STATES for s in self._all_seeds(suite, task)} | {a % INIT_STATES for a in avoid}
         return next((s for s in range(1, INIT_STATES + 1) if s % INIT_STATES not in states), None)
 
     def _insert_seed(self, suite: str, task: str, seed: int, split: str) -> None:

@@ -20,7 +20,7 @@ def test_zetta_train_reproduces_shipped_success(tmp_path, monkeypatch) -> None:
     from services.common.policies import DEFAULT_POLICY, default_checkpoint
     from services.policy_worker.vla.evaluate import evaluate
     from services.ops.cli import main
-    from services.policy_worker.vla.results import training_init_states
+    from services.common.policies import training_init_states
     from zetta_wire.stats import wilson
 
     shipped_ck = default_checkpoint()

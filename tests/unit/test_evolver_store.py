@@ -131,3 +131,17 @@ def test_events_with_an_ident_read_back_latest_only(tmp_path: Path) -> None:
     s.record("profile", {"round": 2, "successes": 3}, ident="g/6/2")
     assert [(e["round"], e["successes"]) for e in s.events("profile")] == [(1, 2), (2, 3)]
     assert s._db.execute("SELECT COUNT(*) FROM events").fetchone()[0] == 3
+
+
+def test_test_seeds_take_layouts_the_policy_never_trained_on(tmp_path) -> None:
+    """The reported number starts from init states outside the policy's demonstrations; the
+    decision splits take the rest."""
+    s = RolloutStore(tmp_path / "store")
+    dev, held = s.assign_splits("libero_goal_swap", "3", dev=10, heldout=10, test=20, trained=range(30))
+    test = s.seeds("libero_goal_swap", "3", "test")
+    assert sorted(t % 50 for t in test) == list(range(30, 50))
+    assert not {d % 50 for d in dev + held} & {t % 50 for t in test}
+    assert s.assign_splits("libero_goal_swap", "3", dev=10, heldout=10, test=20, trained=range(30)) == (dev, held)
+    # More test seeds than unseen layouts: the rest come from the others, still disjoint.
+    s.assign_splits("libero_goal_swap", "4", dev=0, heldout=0, test=25, trained=range(30))
+    assert len({t % 50 for t in s.seeds("libero_goal_swap", "4", "test")}) == 25

@@ -8,7 +8,8 @@ import json
 import pytest
 
 from services.policy_worker.vla.evaluate import done_rows
-from services.policy_worker.vla.results import _ranges, render, summarize, training_init_states, write_results
+from services.common.policies import training_init_states
+from services.policy_worker.vla.results import _ranges, render, summarize, write_results
 
 
 def _checkpoint(tmp_path, seed_offset: int = 1000, seeds_per_task: int = 30):

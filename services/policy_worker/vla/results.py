@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from services.common.policies import training_init_states
 from services.common.provenance import weights_sha256
 from zetta_wire.stats import wilson
 
@@ -30,19 +31,6 @@ def git_commit() -> str:
         return out.stdout.strip() + ("+local-changes" if dirty else "") if out.returncode == 0 else "unknown"
     except OSError:
         return "unknown"
-
-
-def training_init_states(checkpoint: str | Path) -> dict[str, list[int]]:
-    """Init states per suite that the checkpoint's demonstrations came from (its data recipes)."""
-    doc = json.loads((Path(checkpoint) / "config.json").read_text())
-    out: dict[str, set[int]] = {}
-    for r in doc.get("data", {}).get("recipes", []):
-        recipe = r.get("recipe", r)
-        n = recipe.get("max_episodes") or recipe["seeds_per_task"] * len(recipe["tasks"])
-        per_task = -(-n // len(recipe["tasks"]))
-        seeds = range(recipe["seed_offset"], recipe["seed_offset"] + per_task)
-        out.setdefault(recipe["suite"], set()).update(s % 50 for s in seeds)
-    return {k: sorted(v) for k, v in out.items()}
 
 
 def summarize(rows: list[dict]) -> dict[str, dict[str, Any]]:
