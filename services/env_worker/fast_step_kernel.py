@@ -22,8 +22,6 @@ it takes sessions. Import this module only after robosuite has been imported (th
 from __future__ import annotations
 
 import ctypes
-import glob
-import os
 import threading
 from typing import Any
 
@@ -32,17 +30,14 @@ import numpy as np
 import robosuite.macros as macros
 from numba import njit, types
 from robosuite.utils.control_utils import opspace_matrices, orientation_error
+from services.env_worker import libmujoco
 
 
 def _libmujoco() -> str:
-    import mujoco
-
-    here = os.path.dirname(mujoco.__file__)
-    paths = sorted(glob.glob(os.path.join(here, "libmujoco.so*")))
-    paths += sorted(glob.glob(os.path.join(here, "libmujoco*.dylib")))
-    if not paths:
+    where = libmujoco.path()
+    if where is None:
         raise ImportError("libmujoco not found next to the mujoco package")
-    return paths[0]
+    return where
 
 
 if not macros.ENABLE_NUMBA:

@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker import libmujoco
 from services.env_worker.busy import busy
 from services.env_worker.metrics import FRAMES
 
@@ -240,11 +241,10 @@ def _gil_free_make_context() -> Any:
             try:
                 import mujoco
 
-                paths = sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")))
-                paths += sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco*.dylib")))
+                lib = libmujoco.library()
                 layout = _mjr_context_layout()
-                if paths and layout is not None and hasattr(mujoco.MjModel, "_address"):
-                    fn = ctypes.CDLL(paths[0]).mjr_makeContext
+                if lib is not None and layout is not None and hasattr(mujoco.MjModel, "_address"):
+                    fn = lib.mjr_makeContext
                     fn.restype = None
                     fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
                     _MAKE_CONTEXT = (layout, fn)

@@ -33,10 +33,8 @@ from __future__ import annotations
 
 import copy
 import ctypes
-import glob
 import hashlib
 import logging
-import os
 import threading
 import weakref
 from collections.abc import Iterator, Sequence
@@ -46,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from services.env_worker import libmujoco
 from services.env_worker.busy import busy
 
 log = logging.getLogger(__name__)
@@ -60,12 +59,11 @@ def _mj_copy_model() -> Any:
         if _COPY_MODEL is None:
             import mujoco
 
-            paths = sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")))
-            paths += sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco*.dylib")))
-            if not paths or not hasattr(mujoco.MjModel, "_from_model_ptr"):
+            lib = libmujoco.library()
+            if lib is None or not hasattr(mujoco.MjModel, "_from_model_ptr"):
                 _COPY_MODEL = False
             else:
-                fn = ctypes.CDLL(paths[0]).mj_copyModel
+                fn = lib.mj_copyModel
                 fn.restype = ctypes.c_void_p
                 fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
                 _COPY_MODEL = fn
