@@ -5,19 +5,25 @@ A stack is redis-server, the gateway, env workers and a policy worker, each its 
 the stack healthy share one session-wide stack; tests that kill or restart processes get their
 own from ``stack_factory``. Every stack is stopped at teardown, also when the test failed, and the
 service logs of a failed test are printed so a failure can be read without rerunning it.
+Tests that need only the registry get a private redis-server from ``private_registry``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import subprocess
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from typing import Any
 
 import pytest
+import redis.asyncio as aioredis
+import redis.exceptions
 
 from zetta import Gateway
-from services.ops.local_stack import LocalStack
+from services.gateway.registry import Registry
+from services.ops.local_stack import HOST, LocalStack, free_port
 from zetta_wire.v1 import gateway_pb2, types_pb2
 
 #: Short heartbeats so LOST detection is fast in tests (production default: 1000 / 3000 ms).
@@ -116,6 +122,28 @@ async def gw(shared_stack: LocalStack, request: pytest.FixtureRequest) -> AsyncI
             print(dump_logs(shared_stack, lines=20))
         await close_all_sessions(gateway)
         await gateway.close()
+
+
+@contextlib.asynccontextmanager
+async def private_registry(server: str) -> AsyncIterator[Registry]:
+    """A Registry (prefix "zt") on a private redis-server of its own (``server``: its path) on a
+    free loopback port, no persistence; the server is stopped when the block ends."""
+    port = free_port()
+    proc = subprocess.Popen([server, "--bind", HOST, "--port", str(port), "--save", "", "--appendonly", "no"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    client = aioredis.Redis.from_url(f"redis://{HOST}:{port}/0")
+    try:
+        for _ in range(100):
+            try:
+                await client.ping()
+                break
+            except redis.exceptions.ConnectionError:
+                await asyncio.sleep(0.05)
+        yield Registry(client, "zt", 3600)
+    finally:
+        await client.aclose()
+        proc.terminate()
+        proc.wait(timeout=10)
 
 
 async def close_all_sessions(gateway: Gateway) -> None:

@@ -5,37 +5,20 @@ flat reply hiredis parses takes about 10 ms. The records must be what the pipeli
 
 from __future__ import annotations
 
-import subprocess
-import time
 import uuid
 from collections.abc import AsyncIterator
 
 import pytest
-import redis.asyncio as aioredis
-import redis.exceptions
 
 from services.gateway.registry import Registry, SessionRecord
-from services.ops.local_stack import HOST, find_redis_server, free_port
+from services.ops.local_stack import find_redis_server
+from tests.conftest import private_registry
 
 
 @pytest.fixture
 async def registry() -> AsyncIterator[Registry]:
-    port = free_port()
-    proc = subprocess.Popen([find_redis_server(), "--bind", HOST, "--port", str(port), "--save", "",
-                             "--appendonly", "no"], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    client = aioredis.Redis.from_url(f"redis://{HOST}:{port}/0")
-    try:
-        for _ in range(100):
-            try:
-                await client.ping()
-                break
-            except redis.exceptions.ConnectionError:
-                time.sleep(0.05)
-        yield Registry(client, "zt", 3600)
-    finally:
-        await client.aclose()
-        proc.terminate()
-        proc.wait(timeout=10)
+    async with private_registry(find_redis_server()) as reg:
+        yield reg
 
 
 async def test_lookup_matches_the_stored_records(registry: Registry) -> None:

@@ -17,33 +17,16 @@ import numpy as np
 import pytest
 
 from services.harness.sandbox.client import UID_BASE, SandboxClient, SandboxError
+from tests.security.escape_attempts import COMMON, LAST, PRELUDE
+from tests.security.escape_attempts import targets as escape_targets
 
 pytestmark = [
     pytest.mark.timeout(120),
     pytest.mark.skipif(os.geteuid() != 0, reason="the sandbox changes uid and chroots only when started as root"),
 ]
 
-ATTEMPTS = r'''
-import os
-import signal
-import socket
+ATTEMPTS = PRELUDE + r'''
 import subprocess
-import threading
-
-from services.harness.runtime.api import Proposal
-
-
-def _try(name, fn):
-    try:
-        out = fn()
-    except BaseException as exc:
-        return Proposal(name, f"{type(exc).__name__}: {exc}", "", {"blocked": 1.0})
-    return Proposal(name, f"succeeded: {out!r}", "", {"blocked": 0.0})
-
-
-def critic_whoami(window, params):
-    return Proposal("whoami", os.getcwd(), "", {"uid": os.getuid(), "gid": os.getgid(), "euid": os.geteuid(),
-                                               "groups": len(os.getgroups())})
 
 
 def critic_system(window, params):
@@ -51,34 +34,11 @@ def critic_system(window, params):
     return Proposal("system", f"exit status {status}", "", {"blocked": float(status != 0)})
 
 
-def critic_write_marker(window, params):
-    def write():
-        with open(params["marker"] + ".open", "w") as f:
-            f.write("x")
-    return _try("write_marker", write)
-
-
 def critic_write_tmp(window, params):
     def write():
         with open("/tmp/zetta-sandbox-escape", "w") as f:
             f.write("x")
     return _try("write_tmp", write)
-
-
-def critic_read_passwd(window, params):
-    return _try("read_passwd", lambda: open("/etc/passwd").read())
-
-
-def critic_connect(window, params):
-    return _try("connect", lambda: socket.create_connection(("127.0.0.1", params["port"]), timeout=1.0))
-
-
-def critic_unix(window, params):
-    def connect():
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.connect(params["unix"])
-        return s
-    return _try("unix", connect)
 
 
 def critic_fork(window, params):
@@ -93,42 +53,7 @@ def critic_fork(window, params):
 
 def critic_subprocess(window, params):
     return _try("subprocess", lambda: subprocess.run(["/bin/sh", "-c", f"touch {params['marker']}.subprocess"]))
-
-
-def critic_thread(window, params):
-    def start():
-        t = threading.Thread(target=lambda: None)
-        t.start()
-        return t
-    return _try("thread", start)
-
-
-def critic_signal_host(window, params):
-    return _try("signal_host", lambda: os.kill(params["host_pid"], signal.SIGTERM))
-
-
-def critic_setuid_root(window, params):
-    return _try("setuid_root", lambda: os.setuid(0))
-
-
-def critic_big_file(window, params):
-    def write():
-        with open("big", "wb") as f:  # in the scratch dir, the one writable place: but limited
-            f.write(b"x" * (8 << 20))
-    return _try("big_file", write)
-
-
-def critic_memory_bomb(window, params):
-    return _try("memory_bomb", lambda: bytearray(4 << 30))
-
-
-def critic_scratch(window, params):
-    def write():
-        with open("note.txt", "w") as f:
-            f.write("allowed")
-        return open("note.txt").read()
-    return _try("scratch", write)
-'''
+''' + COMMON + LAST
 
 
 @pytest.fixture
@@ -137,19 +62,8 @@ def targets(tmp_path: Path):
     Unix socket listener on this host."""
     shared = tmp_path / "shared"
     shared.mkdir()
-    shared.chmod(0o777)
-    tcp = socket.create_server(("127.0.0.1", 0))
-    tcp.settimeout(0.5)
-    unix_path = str(shared / "listener.sock")
-    unix = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    unix.bind(unix_path)
-    os.chmod(unix_path, 0o777)
-    unix.listen()
-    unix.settimeout(0.5)
-    yield {"marker": str(shared / "marker"), "port": tcp.getsockname()[1], "unix": unix_path,
-           "host_pid": os.getpid()}, shared, tcp, unix
-    tcp.close()
-    unix.close()
+    with escape_targets(shared) as (params, tcp, unix):
+        yield {**params, "host_pid": os.getpid()}, shared, tcp, unix
 
 
 def _run_all(params: dict) -> tuple[SandboxClient, dict]:

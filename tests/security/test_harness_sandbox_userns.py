@@ -28,32 +28,21 @@ from typing import Any
 
 import pytest
 
+from tests.security.escape_attempts import COMMON, LAST, PRELUDE
+from tests.security.escape_attempts import targets as escape_targets
+
 ROOT = Path(__file__).resolve().parents[2]
 HOST = Path(__file__).with_name("sandbox_host_unprivileged.py")
 UID = GID = 10001  # the uid of the Kubernetes base's pods
 
 pytestmark = [pytest.mark.timeout(180)]
 
-ATTEMPTS = r'''
+ATTEMPTS = PRELUDE + r'''
 import ctypes
 import errno
-import os
 import resource
-import signal
-import socket
-import threading
-
-from services.harness.runtime.api import Proposal
 
 _libc = ctypes.CDLL(None, use_errno=True)
-
-
-def _try(name, fn):
-    try:
-        out = fn()
-    except BaseException as exc:
-        return Proposal(name, f"{type(exc).__name__}: {exc}", "", {"blocked": 1.0})
-    return Proposal(name, f"succeeded: {out!r}", "", {"blocked": 0.0})
 
 
 def _raw(name, nr, *args):
@@ -64,11 +53,6 @@ def _raw(name, nr, *args):
                     {"blocked": float(r == -1)})
 
 
-def critic_whoami(window, params):
-    return Proposal("whoami", os.getcwd(), "", {"uid": os.getuid(), "gid": os.getgid(), "euid": os.geteuid(),
-                                               "groups": len(os.getgroups())})
-
-
 def critic_list_root(window, params):
     return Proposal("list_root", repr(sorted(os.listdir("/"))), "", {})
 
@@ -76,10 +60,6 @@ def critic_list_root(window, params):
 def critic_rlimits(window, params):
     names = ("RLIMIT_AS", "RLIMIT_CPU", "RLIMIT_NOFILE", "RLIMIT_FSIZE", "RLIMIT_NPROC", "RLIMIT_CORE")
     return Proposal("rlimits", "", "", {n: float(resource.getrlimit(getattr(resource, n))[1]) for n in names})
-
-
-def critic_read_passwd(window, params):
-    return _try("read_passwd", lambda: open("/etc/passwd").read())
 
 
 def critic_read_repo(window, params):
@@ -94,13 +74,6 @@ def critic_climb(window, params):
     return _try("climb", climb)
 
 
-def critic_write_marker(window, params):
-    def write():
-        with open(params["marker"] + ".open", "w") as f:
-            f.write("x")
-    return _try("write_marker", write)
-
-
 def critic_write_tmp(window, params):
     def write():
         with open(params["tmp_marker"], "w") as f:
@@ -108,28 +81,8 @@ def critic_write_tmp(window, params):
     return _try("write_tmp", write)
 
 
-def critic_connect(window, params):
-    return _try("connect", lambda: socket.create_connection(("127.0.0.1", params["port"]), timeout=1.0))
-
-
-def critic_unix(window, params):
-    def connect():
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.connect(params["unix"])
-        return s
-    return _try("unix", connect)
-
-
-def critic_signal_host(window, params):
-    return _try("signal_host", lambda: os.kill(params["host_pid"], signal.SIGTERM))
-
-
 def critic_kill_all(window, params):
     return _try("kill_all", lambda: os.kill(-1, signal.SIGKILL))
-
-
-def critic_setuid_root(window, params):
-    return _try("setuid_root", lambda: os.setuid(0))
 
 
 def critic_fork(window, params):
@@ -139,14 +92,6 @@ def critic_fork(window, params):
             os._exit(0)
         return pid
     return _try("fork", fork)
-
-
-def critic_thread(window, params):
-    def start():
-        t = threading.Thread(target=lambda: None)
-        t.start()
-        return t
-    return _try("thread", start)
 
 
 def critic_unshare_user(window, params):
@@ -159,26 +104,7 @@ def critic_mount(window, params):
 
 def critic_chroot(window, params):
     return _raw("chroot", 161, b"/")
-
-
-def critic_big_file(window, params):
-    def write():
-        with open("big", "wb") as f:
-            f.write(b"x" * (8 << 20))
-    return _try("big_file", write)
-
-
-def critic_memory_bomb(window, params):
-    return _try("memory_bomb", lambda: bytearray(4 << 30))
-
-
-def critic_scratch(window, params):
-    def write():
-        with open("note.txt", "w") as f:
-            f.write("allowed")
-        return open("note.txt").read()
-    return _try("scratch", write)
-'''
+''' + COMMON + LAST
 
 
 def _command(spec: dict[str, Any]) -> list[str]:
@@ -234,20 +160,12 @@ def targets():
     """A world-writable directory the host's uid can reach (only the sandbox may stop a write
     there), a TCP and a Unix socket listener of the test, a repository file."""
     shared = Path(tempfile.mkdtemp(prefix="zetta-userns-test-"))
-    shared.chmod(0o777)
-    tcp = socket.create_server(("127.0.0.1", 0))
-    tcp.settimeout(0.5)
-    unix_path = str(shared / "listener.sock")
-    unix = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    unix.bind(unix_path)
-    os.chmod(unix_path, 0o777)
-    unix.listen()
-    unix.settimeout(0.5)
-    yield {"marker": str(shared / "marker"), "port": tcp.getsockname()[1], "unix": unix_path,
-           "repo_file": str(ROOT / "pyproject.toml"), "tmp_marker": f"/tmp/{shared.name}-escape"}, shared, tcp, unix
-    tcp.close()
-    unix.close()
-    shutil.rmtree(shared, ignore_errors=True)
+    try:
+        with escape_targets(shared) as (params, tcp, unix):
+            params.update(repo_file=str(ROOT / "pyproject.toml"), tmp_marker=f"/tmp/{shared.name}-escape")
+            yield params, shared, tcp, unix
+    finally:
+        shutil.rmtree(shared, ignore_errors=True)
 
 
 def _proc(pid: int, name: str) -> str:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import shutil
-import subprocess
 import threading
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -20,8 +19,6 @@ from typing import Any
 
 import grpc
 import pytest
-import redis.asyncio as aioredis
-import redis.exceptions
 
 from services.env_worker import busy as busy_mod
 from services.env_worker.busy import BusyLeases
@@ -32,7 +29,7 @@ from services.gateway.monitor import Monitor
 from services.gateway.registry import Registry
 from services.gateway.registry_servicer import WorkerRegistryServicer
 from services.gateway.vantage import Vantage
-from services.ops.local_stack import HOST, free_port
+from tests.conftest import private_registry
 from zetta_wire.v1 import registry_pb2
 
 TIMEOUT_MS = 300
@@ -52,22 +49,8 @@ async def registry() -> AsyncIterator[Registry]:
     server = shutil.which("redis-server")
     if server is None:
         pytest.skip("redis-server is not installed")
-    port = free_port()
-    proc = subprocess.Popen([server, "--bind", HOST, "--port", str(port), "--save", "", "--appendonly", "no"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    client = aioredis.Redis.from_url(f"redis://{HOST}:{port}/0")
-    try:
-        for _ in range(100):
-            try:
-                await client.ping()
-                break
-            except redis.exceptions.ConnectionError:
-                await asyncio.sleep(0.05)
-        yield Registry(client, "zt", 3600)
-    finally:
-        await client.aclose()
-        proc.terminate()
-        proc.wait(timeout=10)
+    async with private_registry(server) as reg:
+        yield reg
 
 
 class _Sighted(Vantage):
