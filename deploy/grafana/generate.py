@@ -52,6 +52,8 @@ class Panel:
     thresholds: list[tuple[float | None, str]] = field(default_factory=list)
     min: float | None = None
     max: float | None = None
+    #: Value mappings (value, text, color): a stat shows the text in that color instead of the number.
+    mappings: list[tuple[float, str, str]] = field(default_factory=list)
 
 
 @dataclass
@@ -86,6 +88,12 @@ def _panel(p: Panel, pid: int, x: int, y: int) -> dict[str, Any]:
         defaults["min"] = p.min
     if p.max is not None:
         defaults["max"] = p.max
+    if p.mappings:
+        defaults["mappings"] = [{
+            "type": "value",
+            "options": {f"{value:g}": {"text": text, "color": color, "index": i}
+                        for i, (value, text, color) in enumerate(p.mappings)},
+        }]
     options: dict[str, Any]
     if p.kind == "timeseries":
         defaults["custom"] = {
@@ -241,7 +249,8 @@ ROLLOUT_ROWS = [
               [Query("sum by (state) (family_state:zetta_sessions:max)", "{{state}}")], unit="short",
               stacked=True, width=8),
         Panel("Rejected admissions", "CreateSessions calls refused per second: pool_full (no free slots, "
-              "the client is told to retry) and unknown_family.",
+              "the client is told to retry), no_live_worker (the family's workers are registered but missed "
+              "their heartbeats; the client is told to retry) and unknown_family.",
               [Query("family_reason:zetta_gateway_admissions_rejected:rate5m", "{{family}} {{reason}}")],
               unit="reqps", width=8),
         Panel("Rejected inference items", "Items the policy workers refused (queue_full) or that expired "
@@ -267,6 +276,24 @@ ROLLOUT_ROWS = [
         Panel("Missed heartbeats", "Monitor ticks that found an env worker's heartbeat late, per worker.",
               [Query("sum by (worker) (rate(zetta_gateway_missed_heartbeats_total[$__rate_interval]))", "{{worker}}")],
               unit="short", width=12),
+    ]),
+    Row("Busy leases", [
+        Panel("Busy leases taken per second", "Busy leases the env workers take before work that holds the GIL "
+              "(services/env_worker/busy.py), by what and outcome: granted; unacknowledged (the gateway did not "
+              "grant it within 2 s, or ZETTA_HEARTBEAT_MAX_BUSY_MS is 0: the worker goes ahead unprotected); "
+              "unannounced; standalone (no membership).",
+              [Query("sum by (what, outcome) (rate(zetta_env_busy_leases_total[$__rate_interval]))",
+                     "{{what}} {{outcome}}")], unit="reqps", stacked=True, width=8),
+        Panel("Busy lease heartbeats at the gateway", "Heartbeats per second that carried a busy lease, by outcome: "
+              "granted, or capped (asked for more than ZETTA_HEARTBEAT_MAX_BUSY_MS).",
+              [Query("sum by (outcome) (rate(zetta_gateway_busy_leases_total[$__rate_interval]))", "{{outcome}}")],
+              unit="reqps", stacked=True, width=8),
+        Panel("Busy lease duration", "How long the env workers held each busy lease, p50 and p99, by what it "
+              "covered (a render context's lease asks for 15 s, a model copy's for 5 s).",
+              [Query("histogram_quantile(0.5, sum by (what, le) (rate(zetta_env_busy_lease_seconds_bucket"
+                     "[$__rate_interval])))", "p50 {{what}}"),
+               Query("histogram_quantile(0.99, sum by (what, le) (rate(zetta_env_busy_lease_seconds_bucket"
+                     "[$__rate_interval])))", "p99 {{what}}")], unit="s", width=8),
     ]),
 ]
 
@@ -294,6 +321,21 @@ EVOLUTION_ROWS = [
         Panel("Interventions by kind", "Interventions of finished harnessed episodes per minute, by kind and outcome.",
               [Query("sum by (kind, outcome) (rate(zetta_env_harness_interventions_total[$__rate_interval])) * 60",
                      "{{kind}} {{outcome}}")], unit="short", width=12),
+    ]),
+    Row("Harness sandbox", [
+        Panel("Harness sandbox mode", "How each process that runs harness package code (env workers, critic, "
+              "evolver) isolates its sandbox children: root, userns, or DEGRADED (no user namespace: no private "
+              "root, no change of user; docs/security.md). A process appears once its first child started.",
+              [Query("max by (job, instance) (zetta_harness_sandbox_mode{mode=\"userns\"}) + 2 * "
+                     "max by (job, instance) (zetta_harness_sandbox_mode{mode=\"degraded\"})",
+                     "{{job}} {{instance}}", instant=True)], kind="stat", width=12, decimals=0,
+              thresholds=[(None, "green"), (2, "red")],
+              mappings=[(0, "root", "green"), (1, "userns", "green"), (2, "DEGRADED", "red")]),
+        Panel("Sandbox isolation by feature", "Each isolation feature of the sandbox children: enforced in every "
+              "process that hosts them, or OFF in at least one (zetta_harness_sandbox_isolation).",
+              [Query("min by (feature) (zetta_harness_sandbox_isolation)", "{{feature}}", instant=True)],
+              kind="stat", width=12, decimals=0, thresholds=[(None, "red"), (1, "green")],
+              mappings=[(0, "OFF", "red"), (1, "enforced", "green")]),
     ]),
 ]
 
