@@ -60,6 +60,7 @@ from services.env_worker.families.robosuite_lift import (  # noqa: E402
     PROPRIO_DIM,
     CompiledModels,
     PooledGroup,
+    retire_env,
     build_env,
     clear_gripper_command,
     env_kwargs,
@@ -78,6 +79,10 @@ _FIXTURE_POSE_FIELDS = ("body_pos", "body_quat")
 LIBERO_CAMERAS = (
     "agentview", "robot0_eye_in_hand", "frontview", "birdview", "sideview", "galleryview", "robot0_robotview",
 )
+#: Idle environments a LIBERO group keeps warm across its tasks (each holds about 0.4 GB: a private
+#: model copy and a render context with the scene's textures); enough for a worker's slots to come
+#: back to one task, bounded when a run walks through many.
+IDLE_ENVS = 8
 #: LIBERO's evaluation budgets by suite family (the token after "libero_").
 _DEFAULT_MAX_STEPS = {"spatial": 220, "object": 280, "goal": 300, "10": 520, "90": 400}
 #: LIBERO-PRO perturbations (suite name suffixes): task redirection (the paper's T), position swap
@@ -150,7 +155,7 @@ class LiberoFamily(PooledGroup, EnvFamily):
         self._init_states: dict[int, np.ndarray] = {}
         self._lock = threading.Lock()
         self._models = CompiledModels(mutable=_FIXTURE_POSE_FIELDS)
-        self._pool: EnvPool[Any] = EnvPool()
+        self._pool: EnvPool[Any] = EnvPool(max_idle=IDLE_ENVS)
         #: Settled states of the group's keys, restored on whichever env resets the key next.
         self.settled = settled.Store()
         self._schema = manipulation_schema(
@@ -250,8 +255,10 @@ class LiberoFamily(PooledGroup, EnvFamily):
         return self._pool.acquire(index, functools.partial(self._build, index))
 
     def park(self, index: int, env: Any) -> None:
-        """Keep a slot's env of task ``index`` warm for the next slot that needs it."""
-        self._pool.release(index, env)
+        """Keep a slot's env of task ``index`` warm for the next slot that needs it (the group keeps
+        at most ``IDLE_ENVS``; the one parked longest ago is closed)."""
+        for old in self._pool.release(index, env):
+            retire_env(old)
 
     def _build(self, index: int) -> Any:
         cfg = self.config

@@ -14,14 +14,21 @@ class EnvPool(Generic[E]):
     """Warm environments of a sharing group, kept per key (e.g. per task) for the next slot.
 
     A closed slot parks its environment here instead of destroying it, so the next slot with the
-    same key skips the build entirely.
+    same key skips the build entirely. ``max_idle`` bounds how many wait at once (None: no bound):
+    a LIBERO environment holds a private model copy and a render context with the scene's
+    textures (about 0.4 GB), so a worker that visits many tasks would otherwise keep one set per
+    task it ever ran (an evolution over ten LIBERO-PRO tasks grew an env worker past 13 GB).
+    Beyond the bound the environment parked longest ago is handed back to be closed.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_idle: int | None = None) -> None:
         self._idle: dict[Hashable, list[E]] = {}
+        self._order: list[tuple[Hashable, E]] = []  # parked environments, oldest first
         self._lock = threading.Lock()
+        self.max_idle = max_idle
         self.built = 0
         self.reused = 0
+        self.evicted = 0
 
     def acquire(self, key: Hashable, build: Callable[[], E]) -> E:
         """A warm environment for ``key``, or a new one from ``build`` when none is idle."""
@@ -29,25 +36,37 @@ class EnvPool(Generic[E]):
             idle = self._idle.get(key)
             if idle:
                 self.reused += 1
-                return idle.pop()
+                env = idle.pop()
+                self._order.remove((key, env))
+                return env
         env = build()
         with self._lock:
             self.built += 1
         return env
 
-    def release(self, key: Hashable, env: E) -> None:
-        """Park ``env`` for reuse under ``key``."""
+    def release(self, key: Hashable, env: E) -> list[E]:
+        """Park ``env`` for reuse under ``key``; returns the environments evicted to stay within
+        ``max_idle`` (oldest first), which the caller closes."""
         with self._lock:
             self._idle.setdefault(key, []).append(env)
+            self._order.append((key, env))
+            evicted: list[E] = []
+            while self.max_idle is not None and len(self._order) > self.max_idle:
+                old_key, old = self._order.pop(0)
+                self._idle[old_key].remove(old)
+                evicted.append(old)
+            self.evicted += len(evicted)
+            return evicted
 
     def idle_count(self) -> int:
         """Environments parked and ready for reuse."""
         with self._lock:
-            return sum(len(v) for v in self._idle.values())
+            return len(self._order)
 
     def drain(self) -> list[E]:
         """Remove and return every parked environment, for the group to close."""
         with self._lock:
-            envs = [env for idle in self._idle.values() for env in idle]
+            envs = [env for _, env in self._order]
             self._idle.clear()
+            self._order.clear()
         return envs

@@ -288,8 +288,21 @@ class PooledGroup:
     def close(self) -> None:
         """Close every pooled env and drop the compiled models."""
         for env in self._pool.drain():
-            env.close()
+            retire_env(env)
         self._models.clear()
+
+
+def retire_env(env: Any) -> None:
+    """Close an environment for good: its render context (textures), its hold on the shared
+    template's models (a private copy may be reused or freed), then robosuite's own close."""
+    from services.env_worker.rendering import close_env_renderer
+
+    close_env_renderer(env)
+    sim = getattr(env, "sim", None)
+    template = getattr(sim, TEMPLATE_ATTR, None)
+    if template is not None:
+        template.detach(id(sim))
+    env.close()
 
 
 @register_family
