@@ -11,7 +11,10 @@ A module's package ``__init__`` runs before it, so importing ``a.b.c`` also coun
 from __future__ import annotations
 
 import ast
-import threading
+import json
+import os
+import subprocess
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,23 +99,8 @@ def _targets(node: ast.Import | ast.ImportFrom, source: str, is_package: bool, m
 
 
 def parse(source: str, filename: str) -> ast.Module:
-    """ast.parse on a fresh thread: in a long test process CPython 3.11.7's AST validator can raise a
-    spurious SystemError ("AST constructor recursion depth mismatch") on a thread whose recursion
-    bookkeeping earlier calls left off; a new thread starts from zero."""
-    out: list[ast.Module | BaseException] = []
-
-    def run() -> None:
-        try:
-            out.append(ast.parse(source, filename=filename))
-        except BaseException as exc:  # noqa: BLE001 - re-raised on the caller's thread below
-            out.append(exc)
-
-    worker = threading.Thread(target=run)
-    worker.start()
-    worker.join()
-    if isinstance(out[0], BaseException):
-        raise out[0]
-    return out[0]
+    """ast.parse of one module (run :func:`check` through :func:`check_in_fresh_process` from tests)."""
+    return ast.parse(source, filename=filename)
 
 
 def imports_of(modules: Mapping[str, Path]) -> list[Import]:
@@ -223,3 +211,20 @@ def check(base: Path, packages: Iterable[str] = ("services", "zetta", "zetta_wir
     problems = direction_violations(imports, modules)
     problems += [f"import cycle: {' <-> '.join(c)}" for c in cycles(imports)]
     return problems
+
+
+
+def check_in_fresh_process(base: Path) -> list[str]:
+    """:func:`check` in a new interpreter. Late in a long test process CPython 3.11.7's AST validator
+    raises a spurious SystemError ("AST constructor recursion depth mismatch") from ast.parse, on
+    any thread; a fresh process parses from a clean state."""
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-m", "tests.import_graph", str(base)], capture_output=True, text=True,
+                          cwd=root, timeout=120, env={**os.environ, "PYTHONPATH": str(root)})
+    if proc.returncode != 0:
+        raise RuntimeError(f"the import check failed to run: {proc.stderr.strip()[-2000:]}")
+    return list(json.loads(proc.stdout))
+
+
+if __name__ == "__main__":
+    print(json.dumps(check(Path(sys.argv[1]))))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.import_graph import check
+from tests.import_graph import check_in_fresh_process as check
 
 ROOT = Path(__file__).resolve().parents[2]
 
