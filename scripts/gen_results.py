@@ -32,6 +32,7 @@ TOPICS: dict[str, tuple[str, str]] = {
     "evolution": ("services.evolver.results", "page"),
     "throughput": ("bench.bench_report", "page"),
     "bench-rollout": ("bench.bench_rollout", "page"),
+    "harness-cost": ("bench.bench_harness", "page"),
     "oracle": ("scripts/oracle_report.py", "page"),
     "harness": ("scripts/eval_harness.py", "page"),
     "demo": ("services.ops.mission_demo", "page"),

@@ -98,13 +98,10 @@ class SandboxedCritic:
         limit = self.hard_limit_s
         run = [(self.index, False)]
         try:
-            # The frames before ``start`` fill the window only; from ``start`` on the critic runs.
-            for k in range(max(0, start - WINDOW + 1), len(fs)):
-                results = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run if k >= start else [],
-                                         lambda i: limit)
-                if not results:
-                    continue
-                res = results[0]
+            # The critic runs from ``start`` on; the frames before it reach the child's window
+            # ahead of the first call.
+            for k in range(start, len(fs)):
+                res = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run, lambda i: limit)[0]
                 if res.kind == codec.R_PROPOSAL:
                     return fs[k].step
                 if res.kind == codec.R_ERROR:

@@ -1,7 +1,7 @@
 """A runaway harness critic on a real env worker costs its own session one hard limit.
 
 One env worker, two Lift sessions on it, each with a harness. One package's critic runs
-``sum(range(400_000_000))`` at step 5: one C call that held the GIL for about 25 s when package
+``sum(range(400_000_000))`` at step 4 (code critics run every 4th step): one C call that held the GIL for about 25 s when package
 code ran inside the worker (the worker stopped heartbeating and every session on it was LOST,
 issue #21). In its sandbox child the call is killed at the platform's hard limit; the critic is
 switched off for that episode (its report says so), the other session keeps its step latency and
@@ -52,7 +52,7 @@ def critic_watch(window, params):
 
 
 def critic_spin(window, params):
-    if window.now.step == 5:
+    if window.now.step == 4:
         sum(range(400_000_000))
     return None
 '''
@@ -93,7 +93,7 @@ async def test_a_runaway_critic_costs_its_own_session_one_hard_limit(stack_facto
         report = bad_results[-1].harness_report
         assert report is not None, "the bad session's episode ended with a report"
         assert [d["name"] for d in report.disabled_critics] == ["critics.spin"]
-        assert "hard limit" in report.disabled_critics[0]["reason"] and report.disabled_critics[0]["step"] == 5
+        assert "hard limit" in report.disabled_critics[0]["reason"] and report.disabled_critics[0]["step"] == 4
         slowest = max(bad_times)
         print(f"quiet session step: median {statistics.median(alone) * 1e3:.1f} ms alone, "
               f"{statistics.median(during) * 1e3:.1f} ms during (max {max(during) * 1e3:.1f}); "

@@ -172,27 +172,29 @@ async def test_evaluate_runs_one_episode_decision_by_decision(reg: zh.HarnessReg
     async with zh.evaluate("evaluated@1", "reach the goal", ["reached(goal)"], address=stack.critic_address) as ev:
         assert ev.manifest == v1
         decisions = [await ev.step(far(0.1), None)]
-        for radius in (0.9, 0.9, 0.9, 0.1, 0.1):
+        for radius in (0.1, 0.1, 0.1, 0.9, 0.9, 0.9, 0.1, 0.1, 0.1):
             decisions.append(await ev.step(far(radius), action, milestones=["reached(goal)"]))
         report = await ev.finish(success=True)
-    assert [d.step for d in decisions] == [0, 1, 2, 3, 4, 5]
-    assert [d.mode for d in decisions] == ["policy", "hold", "hold", "hold", "policy", "policy"]
-    assert [len(d.proposals) for d in decisions] == [0, 1, 1, 1, 0, 0]
-    first = decisions[1].proposals[0]
+    assert [d.step for d in decisions] == list(range(10))
+    # The code critic is evaluated every 4th step, its proposal coming with the next step; through
+    # the intervention it is evaluated at every step, and re-entry follows the first clear one.
+    assert [d.mode for d in decisions] == ["policy"] * 5 + ["hold"] * 2 + ["policy"] * 3
+    assert [len(d.proposals) for d in decisions] == [0, 0, 0, 0, 0, 1, 1, 0, 0, 0]
+    first = decisions[5].proposals[0]
     assert (first.critic, first.evidence, first.suggested_mode) == ("reach.too_far", "too_far", "hold")
     assert first.details["radius"] == pytest.approx(0.9, abs=1e-6)
-    assert {d.intervention_id for d in decisions[1:4]} == {"iv1"}
-    assert all(d.action is not None and d.action.shape == (7,) for d in decisions[1:4])
-    assert decisions[4].action is None and decisions[4].intervention_id == ""
+    assert {d.intervention_id for d in decisions[5:7]} == {"iv1"}
+    assert all(d.action is not None and d.action.shape == (7,) for d in decisions[5:7])
+    assert decisions[7].action is None and decisions[7].intervention_id == ""
     # the episode's report: who acted, and the one intervention from proposal to re-entry
     assert (report.harness, report.version, report.content_hash) == ("evaluated", "1", v1.content_hash)
-    assert (report.policy_actions, report.recovery_actions) == (2, 3)
-    assert dict(report.actions_by_mode) == {"policy": 2, "hold": 3}
+    assert (report.policy_actions, report.recovery_actions) == (7, 2)
+    assert dict(report.actions_by_mode) == {"policy": 7, "hold": 2}
     assert dict(report.interventions_by_kind) == {"hold": 1}
     (iv,) = report.interventions
     assert (iv.id, iv.kind, iv.proposer, iv.evidence) == ("iv1", "hold", "reach.too_far", "too_far")
-    assert (iv.start_step, iv.end_step, iv.outcome, iv.actions) == (1, 4, "reentered", 3)
-    assert report.proposals == 3 and not report.disabled_critics
+    assert (iv.start_step, iv.end_step, iv.outcome, iv.actions) == (5, 7, "reentered", 2)
+    assert report.proposals == 2 and not report.disabled_critics
 
 
 async def test_evaluate_uses_the_task_pin(reg: zh.HarnessRegistry, stack: LocalStack) -> None:

@@ -24,7 +24,7 @@ from services.ops.local_stack import LocalStack
 
 SKILL = """+++
 name = "loop-test"
-description = "freeze the arm from step 3 on; re-enter once still"
+description = "freeze the arm from step 4 on; re-enter once still"
 
 [runtime]
 critic_budget_ms = 50.0
@@ -47,7 +47,7 @@ from services.harness.runtime.api import Proposal
 
 
 def critic_late(window, params):
-    """Proposes a hold at step 3 of the episode."""
+    """Proposes a hold at step 4 of the episode (code critics run every 4th step)."""
     if window.now.step == int(params["at"]):
         return Proposal("critics.late", "late", "hold", {"step": float(window.now.step)})
     return None
@@ -75,7 +75,7 @@ def write_package(root: Path, critics: str = CRITICS) -> Path:
     (root / "SKILL.md").write_text(SKILL)
     (root / "tools" / "critics.py").write_text(critics)
     (root / "plans" / "playbooks.toml").write_text(PLANS)
-    (root / "params" / "critics.toml").write_text("at = 3\n")
+    (root / "params" / "critics.toml").write_text("at = 4\n")
     return root
 
 
@@ -104,18 +104,19 @@ async def test_recovery_actions_replace_the_clients_until_reentry(gw: Gateway, t
     reset = (await group.reset(task="", seed=3, harness_dir=str(pkg)))[0]
     assert len(reset.harness_content_hash) == 64
     step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
-    # The client's three actions ran; step 3, observed after the third, made the critic propose
-    # and the orchestrator grant a hold: it acts next.
     assert step.executed_actions == pytest.approx(np.stack([MOVE] * 3)) and step.recovery_actions == 0
-    assert step.harness_mode == "hold" and step.harness_intervention == "iv1"
+    assert step.harness_mode == "policy"
     step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
+    # Step 4 made the critic propose; its proposal came with step 5 (critics evaluated every 4th
+    # step run while the env steps) and the orchestrator granted a hold, which took the third action.
+    assert step.executed_actions[:2] == pytest.approx(np.stack([MOVE] * 2)) and step.recovery_actions == 1
+    assert step.executed_actions[2, :6] == pytest.approx(np.zeros(6))  # frozen, not the client's move
     assert step.harness_mode == "hold" and step.harness_intervention == "iv1"
-    assert step.recovery_actions == 3
-    assert step.executed_actions[:, :6] == pytest.approx(np.zeros((3, 6)))  # frozen, not the client's move
-    step = (await group.action_step([np.stack([MOVE] * 3)]))[0]
-    # One more frozen action, then re-entry hands back: the rest of the client's chunk is dropped.
+    step = (await group.action_step([np.stack([MOVE] * 4)]))[0]
+    # Three more frozen actions, then re-entry hands back: the rest of the client's chunk is dropped.
+    assert len(step.executed_actions) == 3 and step.recovery_actions == 3
+    assert step.executed_actions[:, :6] == pytest.approx(np.zeros((3, 6)))
     assert step.harness_mode == "policy" and step.harness_intervention == ""
-    assert len(step.executed_actions) == 1 and step.recovery_actions == 1
     step = (await group.action_step([MOVE]))[0]
     assert step.executed_actions[0] == pytest.approx(MOVE) and step.recovery_actions == 0
     await group.close()
@@ -135,8 +136,8 @@ async def test_episode_report_with_action_shares_interventions_and_disabled_crit
     assert report.recovery_actions == 4 and report.actions_by_mode == {"policy": 20, "hold": 4}
     assert report.interventions_by_kind == {"hold": 1}
     iv = report.interventions[0]
-    assert (iv["proposer"], iv["evidence"], iv["start_step"], iv["outcome"]) == ("critics.late", "late", 3, "reentered")
-    assert iv["end_step"] == 7 and iv["actions"] == 4 and "rule late->hold" in iv["decision"]
+    assert (iv["proposer"], iv["evidence"], iv["start_step"], iv["outcome"]) == ("critics.late", "late", 5, "reentered")
+    assert iv["end_step"] == 9 and iv["actions"] == 4 and "rule late->hold" in iv["decision"]
     assert [d["name"] for d in report.disabled_critics] == ["critics.broken"]
     assert "ValueError: broken critic" in report.disabled_critics[0]["reason"]
     # The scripted policy answers one action per call: it was asked once per policy action, never

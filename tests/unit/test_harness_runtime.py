@@ -19,6 +19,14 @@ from services.harness.runtime.orchestrator import Orchestrator, Rule
 
 ROOT = Path(__file__).resolve().parents[2]
 
+
+@pytest.fixture(autouse=True)
+def code_critics_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests follow code critics step by step: evaluate them at every step and wait for
+    them (the cadence and the pipeline are tested in test_harness_cadence.py)."""
+    monkeypatch.setenv("ZETTA_CODE_CRITIC_EVERY", "1")
+    monkeypatch.setenv("ZETTA_CODE_CRITIC_PIPELINE", "0")
+
 TOOLS = '''
 import numpy as np
 from services.harness.runtime.api import Proposal
@@ -395,6 +403,25 @@ def critic_spy(window, params):
     assert len(hits) >= 30  # dropouts are rare
     errors = [float(np.linalg.norm(d.pos - (box[:3] + box[3:]) / 2)) for d in hits]
     assert max(errors) < 0.05 and min(errors) > 0.0
+
+
+@pytest.mark.parametrize("declared", [[], ["agentview_image"]])
+def test_frames_carry_camera_images_only_for_a_package_that_names_them(declared: list[str]) -> None:
+    seen: list = []
+    spy = '''
+def critic_spy(window, params):
+    params["out"].append(sorted(window.now.obs))
+    return None
+'''
+    pkg = package({"runtime": {"critic_budget_ms": 20.0, "critic_hard_limit_ms": 150.0, "signals": declared}},
+                  extra_tools={"spy": spy})
+    pkg = LoadedPackage(**{**pkg.__dict__, "params": {"spy": {"out": seen}}})
+    rt = HarnessRuntime(pkg)
+    rt.start("task", [])
+    image = np.zeros((8, 8, 3), dtype=np.uint8)
+    rt.step({**obs(0.0), "agentview_image": image, "robot0_eye_in_hand_image": image}, None, frozenset())
+    assert "robot0_eye_in_hand_image" not in seen[0] and "phi_contact_force" in seen[0]
+    assert ("agentview_image" in seen[0]) == bool(declared)
 
 
 @pytest.mark.parametrize(

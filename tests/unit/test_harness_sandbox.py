@@ -24,6 +24,14 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(120)
 
 
+@pytest.fixture(autouse=True)
+def code_critics_every_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests follow code critics step by step: evaluate them at every step and wait for
+    them (the cadence and the pipeline are tested in test_harness_cadence.py)."""
+    monkeypatch.setenv("ZETTA_CODE_CRITIC_EVERY", "1")
+    monkeypatch.setenv("ZETTA_CODE_CRITIC_PIPELINE", "0")
+
+
 def sandboxed(skill: dict, plans: dict | None = None, extra: dict[str, str] | None = None,
               params: dict | None = None) -> LoadedPackage:
     """A package whose tools exist only as source: the runtime runs them in its sandbox child."""

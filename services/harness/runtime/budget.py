@@ -1,9 +1,11 @@
 """Time budgets for package code: a critic that overruns or raises is switched off, not fatal.
 
-Critics are code an evolver or an LLM wrote, run on the env worker's slot thread at every env
-step. A critic whose calls use more CPU time than its soft budget is switched off for the rest of
-the episode (CPU time of the calling thread, not wall time: on a loaded machine a call preempted
-by the scheduler or waiting for the GIL is not the critic's fault; see :class:`CallBudget`). A call that is still running at the hard limit (an endless loop)
+Critics are code an evolver or an LLM wrote, run on the env worker's slot thread (library
+critics at every env step, code critics at the cadence of :class:`PlatformLimits`). A critic whose
+calls use more CPU time than its soft budget is switched off for the rest of the episode (CPU time
+of the calling thread, not wall time: on a loaded machine a call preempted by the scheduler or
+waiting for the GIL is not the critic's fault; see :class:`CallBudget`). A call that is still
+running at the hard limit (an endless loop)
 is interrupted: a process-wide watchdog thread raises :class:`CriticTimeout` inside the slot
 thread (``PyThreadState_SetAsyncExc``), so the episode goes on. A call costs three wall-clock
 reads, a dict store and an uncontended lock; the watchdog wakes every 10 ms. Code blocked inside a C call
@@ -133,23 +135,45 @@ def guarded_call(fn: Callable[..., Any], args: tuple[Any, ...], budget: CallBudg
     return result, ""
 
 
+#: Default steps between evaluations of a package's code critics: 4 is 5 Hz at LIBERO's 20 Hz
+#: control, once per chunk of the shipped VLA (it executes 4 actions per call), as in the paper's
+#: critic loop (one proposal per executed chunk, over a window holding each of its steps).
+CODE_CRITIC_EVERY = 4
+
+
 @dataclass(frozen=True)
 class PlatformLimits:
-    """The most time a package's critics may take, set by the platform, not by the package: a
-    package may ask for less (``critic_budget_ms``, ``critic_hard_limit_ms`` in SKILL.md), never more."""
+    """What a package's critics may cost, set by the platform, not by the package: a package may
+    ask for less time (``critic_budget_ms``, ``critic_hard_limit_ms`` in SKILL.md), never more.
+
+    ``code_critic_every``: a package's code critics (tools/*.py, which run in the sandbox child)
+    are evaluated on the reset frame, on every step whose number is a multiple of it and on every
+    step of an intervention; the frames between are kept in their window all the same. A round
+    trip to the child costs more CPU than ten critics' own work (docs/harness.md, "When critics
+    run"); 1 evaluates them at every step. ``code_critic_pipelined``: an evaluation under the
+    policy runs while the env takes its next step, and its proposals reach the orchestrator with
+    that step (one step late; the host does not wait for the child); during an intervention and
+    on the reset frame they are awaited."""
 
     budget_s: float
     hard_limit_s: float
+    code_critic_every: int = CODE_CRITIC_EVERY
+    code_critic_pipelined: bool = True
 
     @classmethod
     def from_env(cls, environ: Any = None) -> "PlatformLimits":
-        """ZETTA_CRITIC_MAX_BUDGET_MS (50) and ZETTA_CRITIC_MAX_HARD_LIMIT_MS (1000); ConfigError when bad."""
+        """ZETTA_CRITIC_MAX_BUDGET_MS (50), ZETTA_CRITIC_MAX_HARD_LIMIT_MS (1000),
+        ZETTA_CODE_CRITIC_EVERY (4 steps, 1-64) and ZETTA_CODE_CRITIC_PIPELINE (on); ConfigError
+        when bad."""
         from services.common.config import EnvReader
 
         env = EnvReader(environ)
         budget = env.float("ZETTA_CRITIC_MAX_BUDGET_MS", 50.0, minimum=0.01)
         hard = env.float("ZETTA_CRITIC_MAX_HARD_LIMIT_MS", 1000.0, minimum=1.0)
+        every = env.int("ZETTA_CODE_CRITIC_EVERY", CODE_CRITIC_EVERY, minimum=1, maximum=64)
+        pipelined = env.bool("ZETTA_CODE_CRITIC_PIPELINE", True)
         if hard < budget:
             env.fail(f"ZETTA_CRITIC_MAX_HARD_LIMIT_MS={hard} must be >= ZETTA_CRITIC_MAX_BUDGET_MS={budget}")
         env.finish("harness runtime")
-        return cls(budget / 1000.0, hard / 1000.0)
+        return cls(budget / 1000.0, hard / 1000.0, every, pipelined)
+

@@ -1,7 +1,10 @@
-"""The harness runtime: critics at every env step, the orchestrator's verdict, recoveries, re-entry.
+"""The harness runtime: critics over every env step, the orchestrator's verdict, recoveries, re-entry.
 
 One :class:`HarnessRuntime` per slot and harness package. The env worker calls :meth:`start` at
-reset and :meth:`step` after every executed action (and once on the reset observation); the
+reset and :meth:`step` after every executed action (and once on the reset observation). Library
+critics run at every step; the package's code critics on the reset frame, every
+``ZETTA_CODE_CRITIC_EVERY`` steps (budget.PlatformLimits) and at every step of an intervention,
+always over a window that holds every step. The
 returned :class:`Decision` says who acts next: the policy, or a recovery with its action. The
 runtime records every intervention (proposer, evidence, decision, start and end steps, outcome)
 and, per episode, how many actions the policy and each recovery took, so a success that came from
@@ -67,6 +70,9 @@ class Critic:
     enabled: bool = True
     #: Index of the critic in the runtime's sandbox child (package code), -1 for one run here.
     remote: int = -1
+    #: Package code (tools/*.py), evaluated at the platform's cadence (PlatformLimits.code_critic_every);
+    #: library critics run at every step.
+    code: bool = False
 
 
 @dataclass(frozen=True)
@@ -143,6 +149,10 @@ class Decision:
     action: np.ndarray | None
     intervention_id: str
     instruction: str = ""
+
+
+#: The policy acts next and no critic proposed anything: most steps (a Decision is immutable).
+_POLICY_NEXT = Decision(POLICY, (), None, "")
 
 
 def _library_critic(entry: Mapping[str, Any]) -> tuple[str, Callable[[Window], Any], float | None]:
@@ -278,20 +288,25 @@ class HarnessRuntime:
         problems = signals.check_package({f"tools/{k}.py": v for k, v in package.sources.items()}, declared)
         if problems:
             raise HarnessError("reads what a harness may not know: " + "; ".join(problems))
+        #: The camera tensors the package asked for: only those ride in its frames.
+        self.cameras = frozenset(n for n in declared if signals.is_camera(n))
         try:
             self.noise = noise_from_table(skill.get("perception", {}))
         except (TypeError, ValueError) as exc:
             raise HarnessError(str(exc)) from None
         # The platform's limits bound what the package asked for (it may ask for less, never more).
         self.limits = PlatformLimits.from_env()
+        self.code_every = self.limits.code_critic_every
+        self.code_pipelined = self.limits.code_critic_pipelined
         self.budget_s = min(self.budget_s, self.limits.budget_s)
         self.hard_limit_s = min(self.hard_limit_s, self.limits.hard_limit_s)
         try:
             self._contract = ReentryContract.from_skill(skill.get("reentry", {}))
         except (ValueError, ParamError) as exc:
             raise HarnessError(str(exc)) from None
-        self._critic_defs: list[tuple[str, Callable[[Window], Any] | None, float | None]] = [
-            _library_critic(e) for e in skill.get("critics", [])
+        #: (name, function (None: in the sandbox child), budget, package code) per critic.
+        self._critic_defs: list[tuple[str, Callable[[Window], Any] | None, float | None, bool]] = [
+            (*_library_critic(e), False) for e in skill.get("critics", [])
         ]
         if sandboxed is None:
             sandboxed = bool(set(package.sources) - set(package.tools))
@@ -303,10 +318,10 @@ class HarnessRuntime:
             except (SandboxError, CallFailed) as exc:
                 raise HarnessError(f"the package's tools do not load in the sandbox: {exc}") from None
             self._remote = {n: i for i, n in enumerate(self._code.critics)}
-            self._critic_defs += [(n, None, None) for n in self._code.critics]
+            self._critic_defs += [(n, None, None, True) for n in self._code.critics]
         else:
-            self._critic_defs += [(n, fn, None) for n, fn in _code_critics(package)]
-        names = [n for n, _, _ in self._critic_defs]
+            self._critic_defs += [(n, fn, None, True) for n, fn in _code_critics(package)]
+        names = [n for n, _, _, _ in self._critic_defs]
         if len(set(names)) != len(names):
             self.close()
             raise HarnessError(f"critic names must be unique, got {names}")
@@ -337,10 +352,6 @@ class HarnessRuntime:
     def _build_plans(self, package: LoadedPackage, skill: Mapping[str, Any]) -> None:
         remote = self._remote_recovery if self._code is not None else None
         callables = self._code.callables if self._code is not None else frozenset()
-        #: Whether a playbook runs package code (the sandbox child then needs every frame).
-        self._remote_plans = remote is not None and any(
-            isinstance(t, Mapping) and isinstance(t.get("recovery"), str) and ":" in t["recovery"]
-            for tables in package.plans.values() for t in tables.values())
         self.plans: dict[str, Plan] = {}
         for stem, tables in sorted(package.plans.items()):
             for mode, table in tables.items():
@@ -365,8 +376,8 @@ class HarnessRuntime:
         self.milestone_names = tuple(milestone_names)
         self.critics = [
             Critic(n, fn, CallBudget(min(b, self.limits.budget_s) if b is not None else self.budget_s, self.hard_limit_s),
-                   remote=self._remote.get(n, -1) if fn is None else -1)
-            for n, fn, b in self._critic_defs
+                   remote=self._remote.get(n, -1) if fn is None else -1, code=code)
+            for n, fn, b, code in self._critic_defs
         ]
         if self._code is not None:
             self._code.start(instruction, self.milestone_names)
@@ -381,6 +392,10 @@ class HarnessRuntime:
         self._step = 0
         self._quiet_until = -1
         self._perception: Perception | None = None
+        #: A pipelined evaluation of the code critics: the in-process ones' proposals, and the
+        #: sandboxed ones sent to the child, both delivered with the next step.
+        self._held: dict[int, Proposal] = {}
+        self._awaiting: tuple[dict[int, tuple[int, Critic]], int] | None = None
         self.report = EpisodeReport(self.package.name, self.package.version, self.package.content_hash)
 
     @property
@@ -406,11 +421,19 @@ class HarnessRuntime:
             self.report.actions_by_mode[self._mode] += 1
         if self._perception is None:
             self._perception = Perception(episode_seed(obs, self.instruction), self.noise)
-        self._frames.append(Frame(self._step, signals.visible(obs), action, milestones, self._perception.sensor(obs)))
+        self._frames.append(Frame(self._step, signals.visible(obs, self.cameras), action, milestones,
+                                  self._perception.sensor(obs)))
         window = Window(tuple(self._frames), self.instruction, self.milestone_names)
-        proposals = self._run_critics(window)
+        # Code critics: on the reset frame, at the platform's cadence and through an intervention
+        # (its re-entry needs fresh evidence); the frames between reach their window regardless.
+        # Under the policy the evaluation is pipelined (its proposals come with the next step).
+        due = action is None or self._active is not None or self._step % self.code_every == 0
+        defer = self.code_pipelined and action is not None and self._active is None
+        proposals = self._run_critics(window, due, defer)
         if self._active is not None:
             return self._decision(self._continue(window, proposals), proposals)
+        if not proposals:
+            return _POLICY_NEXT
         if self._step <= self._quiet_until:
             return Decision(POLICY, proposals, None, "")
         verdict = self.orchestrator.adjudicate(
@@ -437,15 +460,25 @@ class HarnessRuntime:
             return Decision(self._mode, proposals, None, self._active.id, next_action.instruction)
         return Decision(self._mode, proposals, next_action, self._active.id)
 
-    def _disable(self, critic: Critic, error: str) -> None:
+    def _disable(self, critic: Critic, error: str, step: int | None = None) -> None:
+        """Switch ``critic`` off for the episode, recorded at the step it misbehaved on."""
         critic.enabled = False
-        self.report.disabled_critics.append(DisabledCritic(critic.name, self._step, error))
+        self.report.disabled_critics.append(DisabledCritic(critic.name, self._step if step is None else step, error))
 
-    def _run_critics(self, window: Window) -> tuple[Proposal, ...]:
+    def _run_critics(self, window: Window, due: bool = True, defer: bool = False) -> tuple[Proposal, ...]:
+        """Every enabled library critic, and the code critics when ``due``: their proposals now,
+        or with the next step when ``defer`` (the sandbox child then works while the env steps).
+        A pipelined evaluation of the last step comes first; this step's own results replace it."""
         found: dict[int, Proposal] = {}
+        if self._held:
+            found.update(self._held)
+            self._held = {}
+        if self._awaiting is not None:
+            self._collect_remote(found)
+        held: dict[int, Proposal] = {} if defer else found
         remote: dict[int, tuple[int, Critic]] = {}
         for i, critic in enumerate(self.critics):
-            if not critic.enabled:
+            if not critic.enabled or (critic.code and not due):
                 continue
             if critic.fn is None:
                 remote[critic.remote] = (i, critic)
@@ -457,16 +490,20 @@ class HarnessRuntime:
                 self._disable(critic, error)
                 continue
             if result is not None:
-                found[i] = result
-        if self._code is not None and (remote or self._remote_plans):
-            self._run_remote(remote, found, window.frames)
+                (held if critic.code else found)[i] = result
+        if self._code is not None and remote:
+            self._send_remote(remote, window.frames)
+            if not defer:
+                self._collect_remote(found)
+        if defer:
+            self._held = held
         out = tuple(found[i] for i in sorted(found))
         self.report.proposals += len(out)
         return out
 
-    def _run_remote(self, remote: dict[int, tuple[int, Critic]], found: dict[int, Proposal],
-                    frames: Sequence[Frame]) -> None:
-        """The package's critics, in the sandbox child: one round trip per step for all of them."""
+    def _send_remote(self, remote: dict[int, tuple[int, Critic]], frames: Sequence[Frame]) -> None:
+        """The package's critics, to the sandbox child: one message for all of them, carrying the
+        frames the child has not seen yet; :meth:`_collect_remote` takes their results."""
         assert self._code is not None
         runs = []
         cap = 2.0  # the whole step may take the sum of the critics' hard limits plus 2 s
@@ -479,23 +516,39 @@ class HarnessRuntime:
             return hit[1].budget.hard_limit_s if hit is not None else self.hard_limit_s
 
         try:
-            results = self._code.step(frames, runs, hard_limit, cap)
+            self._code.send(frames, runs, hard_limit, cap)
         except (SandboxError, CallFailed) as exc:
-            hit = remote.get(exc.index) if isinstance(exc, SandboxError) else None
-            for _, critic in [hit] if hit is not None else list(remote.values()):
-                self._disable(critic, str(exc))
+            self._remote_failed(remote, exc, self._step)
+            return
+        self._awaiting = (remote, self._step)
+
+    def _remote_failed(self, remote: dict[int, tuple[int, Critic]], exc: SandboxError | CallFailed, step: int) -> None:
+        hit = remote.get(exc.index) if isinstance(exc, SandboxError) else None
+        for _, critic in [hit] if hit is not None else list(remote.values()):
+            self._disable(critic, str(exc), step)
+
+    def _collect_remote(self, found: dict[int, Proposal]) -> None:
+        """The results of the critics sent to the child, into ``found``; budgets and errors as in-process."""
+        assert self._code is not None and self._awaiting is not None
+        (remote, step), self._awaiting = self._awaiting, None
+        if not self._code.inflight:  # the child was replaced since: nothing will answer
+            return
+        try:
+            results = self._code.collect()
+        except (SandboxError, CallFailed) as exc:
+            self._remote_failed(remote, exc, step)
             return
         R_ERROR, R_PROPOSAL = sandbox_codec.R_ERROR, sandbox_codec.R_PROPOSAL
         for index, kind, elapsed, proposal, error in results:
             i, critic = remote[index]
             budget = critic.budget
             if kind == R_ERROR:
-                self._disable(critic, error)
+                self._disable(critic, error, step)
                 continue
             if elapsed > budget.budget_s:
                 if budget.suspect:
                     self._disable(critic, f"used {elapsed * 1000:.1f} ms of CPU, over its "
-                                          f"{budget.budget_s * 1000:.1f} ms budget")
+                                          f"{budget.budget_s * 1000:.1f} ms budget", step)
                     continue
                 budget.suspect = True
             else:
@@ -520,6 +573,8 @@ class HarnessRuntime:
         self.report.interventions.append(iv)
         self._active, self._plan, self._waiting = iv, plan, False
         self._mode = rule.mode
+        if self._awaiting is not None:  # before a package recovery's call: still due with the next step
+            self._collect_remote(self._held)
         try:
             self._recovery = plan.build()
             self._recovery.start(window, self._memory)

@@ -103,61 +103,73 @@ class Perception:
         self._rng = np.random.default_rng(seed)
         self._bias = self._rng.normal(0.0, model.bias_m, 3)
         self._scale = 1.0 + self._rng.normal(0.0, model.size_noise, 3)
+        #: What every frame's sensor reads: the bias and scale as Python floats, the draws.
+        self._bx, self._by, self._bz = self._bias.tolist()
+        self._sx, self._sy, self._sz = self._scale.tolist()
 
     def sensor(self, exact: Mapping[str, np.ndarray]) -> Sensor:
         """The tool for one frame, reading ``exact`` (the simulator's tensors) behind a closure.
 
-        (Runs at every env step: the arithmetic is on Python floats, in the order of the array
-        expressions it stands for, so the estimates are the same to the bit; the draws from the
-        episode's generator are the same and in the same order.)"""
-        cache: dict[str, Detection | list[Detection] | None] = {}
-        rng, model = self._rng, self.model
-        normal, random, noise_m = rng.normal, rng.random, model.noise_m
-        bx, by, bz = self._bias.tolist()
-        sx, sy, sz = self._scale.tolist()
-        array = np.array
+        (Runs at every env step: one small object per frame, and the arithmetic on Python floats,
+        in the order of the array expressions it stands for, so the estimates are the same to the
+        bit; the draws from the episode's generator are the same and in the same order.)"""
+        return _FrameSensor(self, exact)
 
-        def estimate(box: list[float], centre: list[float] | None = None) -> Detection:
-            x0, y0, z0, x1, y1, z1 = box
-            if centre is None:
-                cx, cy, cz = (x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2
+
+class _FrameSensor:
+    """``frame.perceive``: one frame's answers, drawn when first asked, the same on every read."""
+
+    __slots__ = ("_p", "_exact", "_cache")
+
+    def __init__(self, perception: Perception, exact: Mapping[str, np.ndarray]) -> None:
+        self._p = perception
+        self._exact = exact
+        self._cache: dict[str, Detection | list[Detection] | None] = {}
+
+    def _estimate(self, box: list[float], centre: list[float] | None = None) -> Detection:
+        p = self._p
+        x0, y0, z0, x1, y1, z1 = box
+        if centre is None:
+            cx, cy, cz = (x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2
+        else:
+            cx, cy, cz = centre
+        hx, hy, hz = (x1 - x0) / 2 * p._sx, (y1 - y0) / 2 * p._sy, (z1 - z0) / 2 * p._sz
+        nx, ny, nz = p._rng.normal(0.0, p.model.noise_m, 3).tolist()
+        px, py, pz = cx + p._bx + nx, cy + p._by + ny, cz + p._bz + nz
+        return Detection(np.array((px, py, pz)), np.array((px - hx, py - hy, pz - hz, px + hx, py + hy, pz + hz)))
+
+    def _others(self) -> list[list[float]]:
+        exact = self._exact
+        state = exact.get("object_state")
+        if state is None:
+            return []
+        n = len(state) // OBJECT_STATE_STRIDE
+        blocks = np.asarray(state[: n * OBJECT_STATE_STRIDE], dtype=np.float64).reshape(n, OBJECT_STATE_STRIDE)
+        pos = blocks[np.any(blocks != 0.0, axis=1)][:, :3]
+        obj = exact.get("task_object_pos")
+        if obj is not None and np.any(obj):
+            pos = pos[np.linalg.norm(pos - np.asarray(obj, dtype=np.float64), axis=1) > 0.02]
+        return pos.tolist()
+
+    def __call__(self, query: str) -> Detection | list[Detection] | None:
+        cache = self._cache
+        if query in cache:
+            return cache[query]
+        if query not in QUERIES:
+            raise ValueError(f"perceive({query!r}): queries are {', '.join(QUERIES)}")
+        p = self._p
+        model, rng = p.model, p._rng
+        found: Detection | list[Detection] | None
+        if query == "others":
+            found = [self._estimate(q + q, q) for q in self._others() if rng.random() >= model.dropout]
+        else:
+            raw = self._exact.get(f"task_{query}_bbox")
+            box = None if raw is None else np.asarray(raw, dtype=np.float64).tolist()
+            if box is None or not any(box) or rng.random() < model.dropout:
+                found = None
+            elif query == "object" and rng.random() < model.confusion and (pool := self._others()):
+                found = self._estimate(box, pool[int(rng.integers(len(pool)))])
             else:
-                cx, cy, cz = centre
-            hx, hy, hz = (x1 - x0) / 2 * sx, (y1 - y0) / 2 * sy, (z1 - z0) / 2 * sz
-            nx, ny, nz = normal(0.0, noise_m, 3).tolist()
-            px, py, pz = cx + bx + nx, cy + by + ny, cz + bz + nz
-            return Detection(array((px, py, pz)), array((px - hx, py - hy, pz - hz, px + hx, py + hy, pz + hz)))
-
-        def others() -> list[list[float]]:
-            state = exact.get("object_state")
-            if state is None:
-                return []
-            n = len(state) // OBJECT_STATE_STRIDE
-            blocks = np.asarray(state[: n * OBJECT_STATE_STRIDE], dtype=np.float64).reshape(n, OBJECT_STATE_STRIDE)
-            pos = blocks[np.any(blocks != 0.0, axis=1)][:, :3]
-            obj = exact.get("task_object_pos")
-            if obj is not None and np.any(obj):
-                pos = pos[np.linalg.norm(pos - np.asarray(obj, dtype=np.float64), axis=1) > 0.02]
-            return pos.tolist()
-
-        def perceive(query: str) -> Detection | list[Detection] | None:
-            if query in cache:
-                return cache[query]
-            if query not in QUERIES:
-                raise ValueError(f"perceive({query!r}): queries are {', '.join(QUERIES)}")
-            found: Detection | list[Detection] | None
-            if query == "others":
-                found = [estimate(p + p, p) for p in others() if random() >= model.dropout]
-            else:
-                raw = exact.get(f"task_{query}_bbox")
-                box = None if raw is None else np.asarray(raw, dtype=np.float64).tolist()
-                if box is None or not any(box) or random() < model.dropout:
-                    found = None
-                elif query == "object" and random() < model.confusion and (pool := others()):
-                    found = estimate(box, pool[int(rng.integers(len(pool)))])
-                else:
-                    found = estimate(box)
-            cache[query] = found
-            return found
-
-        return perceive
+                found = self._estimate(box)
+        cache[query] = found
+        return found

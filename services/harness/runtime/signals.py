@@ -41,19 +41,30 @@ def allowed(name: str) -> bool:
     return name in ALLOWED or any(p.match(name) for p in ALLOWED_PATTERNS)
 
 
-#: The names a harness may read, in order, by the names an observation carries (a few key sets
-#: per family): every env step filters its observation, and the patterns cost more than a lookup.
-_VISIBLE: dict[tuple[str, ...], tuple[str, ...]] = {}
+#: Camera tensors: a frame carries them only for a package that names them in ``[runtime]
+#: signals`` (an image is most of a frame's bytes, copied to the sandbox child at every step).
+_CAMERA = re.compile(r"^[a-z0-9_]+_(image|depth)$")
+
+#: The names a harness may read, in order, by the names an observation carries and the cameras
+#: asked for (a few key sets per family): every env step filters its observation, and the
+#: patterns cost more than a lookup.
+_VISIBLE: dict[tuple[tuple[str, ...], frozenset[str]], tuple[str, ...]] = {}
 
 
-def visible(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The part of an observation a harness sees."""
+def is_camera(name: str) -> bool:
+    """Whether ``name`` is a camera tensor (an image or a depth map)."""
+    return _CAMERA.match(name) is not None
+
+
+def visible(obs: Mapping[str, np.ndarray], cameras: frozenset[str] = frozenset()) -> dict[str, np.ndarray]:
+    """The part of an observation a harness sees: what it may read, camera tensors only when named
+    in ``cameras``."""
     names = tuple(obs)
-    keep = _VISIBLE.get(names)
+    keep = _VISIBLE.get((names, cameras))
     if keep is None:
-        keep = tuple(k for k in names if allowed(k))
+        keep = tuple(k for k in names if allowed(k) and (k in cameras or not is_camera(k)))
         if len(_VISIBLE) < 256:
-            _VISIBLE[names] = keep
+            _VISIBLE[(names, cameras)] = keep
     return {k: obs[k] for k in keep}
 
 

@@ -380,19 +380,27 @@ class Host:
         return perceive
 
     def push(self, body: memoryview) -> bytes:
-        self._frame(codec.Reader(body))
+        r = codec.Reader(body)
+        _, cache = self._frame(r)
+        self._answers(r, cache)
+        r.done()
         return b""
+
+    def _answers(self, r: codec.Reader, cache: dict[str, Any]) -> None:
+        """Perception answers the host sent along with a frame, into its cache."""
+        Detection = self._Detection
+        for _ in range(r.u32()):
+            query = r.text()
+            cache[query] = codec.decode_detections(r, Detection)
 
     def _window(self) -> Any:
         return self._Window(tuple(self.window), self.instruction, self.milestone_names)
 
     def step(self, body: memoryview) -> bytes:
-        Detection, Proposal = self._Detection, self._Proposal
+        Proposal = self._Proposal
         r = codec.Reader(body)
         now, cache = self._frame(r)
-        for _ in range(r.u32()):  # perception answers the host sent along
-            query = r.text()
-            cache[query] = codec.decode_detections(r, Detection)
+        self._answers(r, cache)
         flat = r.u32s(2 * r.u32())
         window = self._window()
         asked = self.asked

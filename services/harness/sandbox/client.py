@@ -480,10 +480,15 @@ class SandboxClient:
     def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
         self._send(codec.frame(codec.START, pickle.dumps((instruction, tuple(milestone_names)))))
 
-    def push(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str]) -> None:
+    def push_message(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
+                     milestones: frozenset[str], prefetched: Sequence[tuple[str, Any]] = ()) -> bytes:
+        """A frame for the child's window without a reply, to send ahead of the next call (frames
+        are encoded in the order they are sent: the encoder sends only what changed), with
+        perception answers for it as :meth:`step` takes them."""
         w = codec.Writer()
         layout = self._frames.encode(w, step, obs, action, milestones)
-        self._send(layout + w.message(codec.PUSH))
+        _answers(w, prefetched)
+        return layout + w.message(codec.PUSH)
 
     def _send(self, msg: bytes) -> None:
         if self.dead:
@@ -492,22 +497,25 @@ class SandboxClient:
 
     def step(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None, milestones: frozenset[str],
              runs: Sequence[tuple[int, bool]], hard_limit: Callable[[int], float], perceive: Perceive | None = None,
-             prefetched: Sequence[tuple[str, Any]] = (), cap_s: float | None = None) -> list[CriticResult]:
+             prefetched: Sequence[tuple[str, Any]] = (), cap_s: float | None = None,
+             before: bytes = b"") -> list[CriticResult]:
         """Append a frame to the child's window and run the critics ``runs`` ((index, time in CPU)).
         ``prefetched``: perception answers for this frame, sent along (a query the child asks
         that is not among them costs a round trip through ``perceive``). ``cap_s``: how long the
-        whole step may take (default: the sum of the critics' hard limits plus 2 s). Returns a
+        whole step may take (default: the sum of the critics' hard limits plus 2 s). ``before``:
+        messages sent ahead in the same write (:meth:`push_message` frames). Returns a
         :class:`CriticResult` per critic run, in order."""
+        self.send_step(step, obs, action, milestones, runs, prefetched, before)
+        return self.results(hard_limit, perceive, cap_s)
+
+    def send_step(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
+                  milestones: frozenset[str], runs: Sequence[tuple[int, bool]],
+                  prefetched: Sequence[tuple[str, Any]] = (), before: bytes = b"") -> None:
+        """The first half of :meth:`step`: send the frame and the critics to run, without waiting
+        (the child works while the caller steps its env); :meth:`results` collects the answer."""
         w = codec.Writer()
         layout = self._frames.encode(w, step, obs, action, milestones)
-        parts = w.parts
-        if prefetched:
-            parts.append(_U32.pack(len(prefetched)))
-            for query, found in prefetched:
-                w.text(query)
-                codec.encode_detections(w, found)
-        else:
-            parts.append(_ZERO)
+        _answers(w, prefetched)
         runs = tuple(runs)
         if runs != self._runs:  # the same critics as last step, most of the time
             self._runs = runs
@@ -515,10 +523,17 @@ class SandboxClient:
             self._runs_msg = struct.pack(f"<I{2 * len(runs)}I", len(runs),
                                          *(v for i, s in runs for v in (i, 1 if s else 0)))
             self._heads = codec.result_heads(len(runs))
-        parts.append(self._runs_msg)
+        w.parts.append(self._runs_msg)
+        self._send(before + layout + w.message(codec.STEP))
+
+    def results(self, hard_limit: Callable[[int], float], perceive: Perceive | None = None,
+                cap_s: float | None = None) -> list[CriticResult]:
+        """The second half of :meth:`step`: wait for the answer to the step sent last (serving its
+        perception queries; a critic past its hard limit, counted from its start, is killed)."""
+        runs = self._runs or ()
         if cap_s is None:
             cap_s = sum(hard_limit(i) for i in self._runs_index) + 2.0
-        kind, r = self._call(layout + w.message(codec.STEP), hard_limit, cap_s, perceive)
+        kind, r = self._call(b"", hard_limit, cap_s, perceive)
         if kind != codec.RESULTS:
             raise self._kill(-1, f"the sandbox broke the protocol: {_error_text(kind, r)}")
         try:
@@ -547,16 +562,16 @@ class SandboxClient:
         return out
 
     def recovery_start(self, ref: str, params: Mapping[str, Any], hard_limit_s: float,
-                       perceive: Perceive | None = None) -> None:
-        msg = codec.frame(codec.REC_START, pickle.dumps((ref, dict(params))))
+                       perceive: Perceive | None = None, before: bytes = b"") -> None:
+        msg = before + codec.frame(codec.REC_START, pickle.dumps((ref, dict(params))))
         kind, r = self._call(msg, lambda i: hard_limit_s, hard_limit_s + 2.0, perceive)
         if kind != codec.REC_STARTED:
             raise CallFailed(_error_text(kind, r))
 
-    def recovery_act(self, hard_limit_s: float, perceive: Perceive | None = None
+    def recovery_act(self, hard_limit_s: float, perceive: Perceive | None = None, before: bytes = b""
                      ) -> tuple[np.ndarray | str | None, str, str]:
         """(action array, or an instruction to run the policy under, or None), status, reason."""
-        kind, r = self._call(codec.frame(codec.REC_ACT), lambda i: hard_limit_s, hard_limit_s + 2.0, perceive)
+        kind, r = self._call(before + codec.frame(codec.REC_ACT), lambda i: hard_limit_s, hard_limit_s + 2.0, perceive)
         if kind != codec.REC_ACTION:
             raise CallFailed(_error_text(kind, r))
         try:
@@ -579,6 +594,17 @@ class SandboxClient:
         if kind != codec.CHECKED:
             raise CallFailed(_error_text(kind, r))
         return [(r.text(), r.u32(), r.text()) for _ in range(r.u32())]
+
+
+def _answers(w: codec.Writer, prefetched: Sequence[tuple[str, Any]]) -> None:
+    """Perception answers for a frame: ``u32 count | (query, detections)*``."""
+    if prefetched:
+        w.parts.append(_U32.pack(len(prefetched)))
+        for query, found in prefetched:
+            w.text(query)
+            codec.encode_detections(w, found)
+    else:
+        w.parts.append(_ZERO)
 
 
 def _error_text(kind: int, r: codec.Reader) -> str:

@@ -23,7 +23,7 @@ import numpy as np
 INIT = 1        # pickled set-up: package files or sources, params, window size, whether to check
 START = 2       # pickled: instruction, milestone names (a new episode)
 STEP = 3        # a frame, then the indices of the critics to run (evaluate)
-PUSH = 4        # a frame only (restoring the window of a respawned child)
+PUSH = 4        # a frame only, with perception answers: the steps since the last call (or a respawned child's window)
 REC_START = 5   # start a package recovery: its mode, "<stem>:<factory>" and pickled params
 REC_ACT = 6     # the active package recovery's next action
 PERCEPT = 7     # the answer to a perception query
