@@ -5,11 +5,11 @@ critics at every env step, code critics at the cadence of :class:`PlatformLimits
 calls use more CPU time than its soft budget is switched off for the rest of the episode (CPU time
 of the calling thread, not wall time: on a loaded machine a call preempted by the scheduler or
 waiting for the GIL is not the critic's fault; see :class:`CallBudget`). A call that is still
-running at the hard limit (an endless loop)
-is interrupted: a process-wide watchdog thread raises :class:`CriticTimeout` inside the slot
-thread (``PyThreadState_SetAsyncExc``), so the episode goes on. A call costs three wall-clock
-reads, a dict store and an uncontended lock; the watchdog wakes every 10 ms. Code blocked inside a C call
-(a huge numpy operation) is interrupted when that call returns.
+running at the hard limit (an endless loop) is interrupted: a process-wide watchdog thread raises
+:class:`CriticTimeout` inside the slot thread (``PyThreadState_SetAsyncExc``), so the episode goes
+on. A call costs three wall-clock reads, a dict store and an uncontended lock; the watchdog wakes
+every 10 ms. Code blocked inside a C call (a huge numpy operation) is interrupted when that call
+returns.
 """
 
 from __future__ import annotations
@@ -176,4 +176,3 @@ class PlatformLimits:
             env.fail(f"ZETTA_CRITIC_MAX_HARD_LIMIT_MS={hard} must be >= ZETTA_CRITIC_MAX_BUDGET_MS={budget}")
         env.finish("harness runtime")
         return cls(budget / 1000.0, hard / 1000.0, every, pipelined)
-
