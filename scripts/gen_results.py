@@ -33,6 +33,7 @@ TOPICS: dict[str, tuple[str, str]] = {
     "throughput": ("bench.bench_report", "page"),
     "bench-rollout": ("bench.bench_rollout", "page"),
     "harness-cost": ("bench.bench_harness", "page"),
+    "policy-bench": ("bench.bench_policy", "page"),
     "oracle": ("scripts/oracle_report.py", "page"),
     "harness": ("scripts/eval_harness.py", "page"),
     "demo": ("services.ops.mission_demo", "page"),
