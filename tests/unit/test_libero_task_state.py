@@ -5,7 +5,8 @@
 * constructed failures (the oracle with its gripper forced open; the oracle stopped after the lift)
   end with the expected first missing milestone m*;
 * success is the environment's own ``_check_success`` and nothing else;
-* an episode key replays bit for bit, also on another slot and after other episodes.
+* an episode key replays bit for bit, also on another slot and after other episodes;
+* a sampled layout (``SAMPLED_LAYOUT``) is keyed by the seed and is none of the benchmark's states.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.env_worker.families import ConfigError, ResetSpec, canonical_config_key, get_family
+from services.env_worker.families import SAMPLED_LAYOUT, ConfigError, ResetSpec, canonical_config_key, get_family
 from services.common.milestone_kinds import MAX_MILESTONES, STAGE_KINDS
 from services.policy_worker.models.oracle import OraclePolicy
 
@@ -252,6 +253,29 @@ def test_episode_key_replays_bit_for_bit() -> None:
     finally:
         first_slot.close()
         second_slot.close()
+        family.close()
+
+
+def test_sampled_layout_is_keyed_by_the_seed_and_is_no_benchmark_state() -> None:
+    """Training data on sampled layouts: the same seed gives the same layout, another seed another,
+    and none is one of the task's 50 benchmark init states (those are kept for evaluation)."""
+    family = get_family("libero")({"suite": "libero_goal", "cameras": []})
+    slot = family.init()
+
+    def layout(seed: int, init: int) -> np.ndarray:
+        slot.reset(ResetSpec("put_the_wine_bottle_on_top_of_the_cabinet", seed=seed, init_state_index=init))
+        return slot._env.sim.data.qpos.copy()
+
+    try:
+        a, b = layout(11, SAMPLED_LAYOUT), layout(12, SAMPLED_LAYOUT)
+        assert np.array_equal(a, layout(11, SAMPLED_LAYOUT))
+        assert not np.allclose(a, b, atol=1e-4)
+        benchmark = [layout(11, k) for k in range(50)]
+        assert min(float(np.abs(a - q).max()) for q in benchmark) > 1e-4
+        with pytest.raises(Exception, match="out of range"):
+            slot.reset(ResetSpec("0", seed=1, init_state_index=-2))
+    finally:
+        slot.close()
         family.close()
 
 

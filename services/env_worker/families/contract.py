@@ -24,12 +24,19 @@ import numpy as np
 from services.common.specs import TensorSpec
 
 
+#: ``ResetSpec.init_state_index`` for "no benchmark initial state: the layout sampled from the seed".
+SAMPLED_LAYOUT = -1
+
+
 @dataclass(frozen=True)
 class ResetSpec:
     """The key of an episode: the same key and the same actions replay the same episode.
 
     ``task`` is a task name of the configured suite or its index as a decimal string; empty selects
     the family's default. ``instruction`` overrides the task's own instruction for the policy.
+    ``init_state_index`` names one of the benchmark's fixed initial states; ``SAMPLED_LAYOUT``
+    keeps the layout the suite's placement sampler draws from the seed instead, so training data
+    can cover layouts the benchmark's fixed states (kept for evaluation) do not contain.
     """
 
     task: str

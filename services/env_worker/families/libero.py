@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
+from services.env_worker.families.contract import SAMPLED_LAYOUT, ConfigError, EnvFamily, ResetError, ResetSpec, Slot
 from services.env_worker.families.episode import EpisodeSlot
 from services.env_worker.families.options import (
     MAX_CAMERA_SIZE,
@@ -239,7 +239,7 @@ class LiberoFamily(PooledGroup, EnvFamily):
         if not 0 <= k < len(states):
             raise ResetError(
                 f"libero: init_state_index {k} is out of range: task {self._task_names[index]!r} "
-                f"has {len(states)} init states (0..{len(states) - 1})"
+                f"has {len(states)} init states (0..{len(states) - 1}; {SAMPLED_LAYOUT}: the layout sampled from the seed)"
             )
         return states[k]
 
@@ -335,7 +335,8 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
 
     def _start(self, spec: ResetSpec) -> tuple[Mapping[str, Any], str, int]:
         index = self._family.task_index(spec.task)
-        init_state = self._family.init_state(index, spec.init_state_index)
+        sampled = spec.init_state_index == SAMPLED_LAYOUT
+        init_state = None if sampled else self._family.init_state(index, spec.init_state_index)
         self.switch_task(index)
         env = self._env
         # The reset's fixture poses go to this slot's model only, never one other slots step.
@@ -350,9 +351,10 @@ class _LiberoSlot(TaskProgressSlot, EpisodeSlot):
                     continue
             else:
                 raise ResetError(f"libero: object placement failed {_RESET_ATTEMPTS} times for seed {spec.seed}")
-        # What LIBERO's ControlEnv.set_init_state does, on the domain env itself.
-        env.sim.set_state_from_flattened(init_state)
-        env.sim.forward()
+        if init_state is not None:  # else the layout env.reset() sampled from the seed stays
+            # What LIBERO's ControlEnv.set_init_state does, on the domain env itself.
+            env.sim.set_state_from_flattened(init_state)
+            env.sim.forward()
         stepper = make_stepper(env, self._family.config["fast_step"])
         key = (index, spec.init_state_index, spec.seed, self._family.config["settle_steps"])
         start = settled.start_state(env) if isinstance(stepper, FastStepper) else None

@@ -31,6 +31,11 @@ def default_teacher() -> str:
     return "oracle" if "oracle" in FACTORIES else "scripted-pick-place"
 
 
+#: DataRecipe.init_states: the benchmark's fixed initial states, or layouts sampled from each seed.
+BENCHMARK_INITS = "init_state_index = seed % 50"
+SAMPLED_LAYOUTS = "sampled layout per seed (init_state_index -1)"
+
+
 @dataclass
 class DataRecipe:
     """Everything needed to regenerate the demonstration set (stored next to the checkpoint)."""
@@ -40,7 +45,9 @@ class DataRecipe:
     teacher: str = ""
     seeds_per_task: int = 30
     seed_offset: int = 1000
-    init_states: str = "init_state_index = seed % 50"
+    #: BENCHMARK_INITS or SAMPLED_LAYOUTS: sampled layouts come from the same placement regions as
+    #: the benchmark's 50 fixed states without being any of them (those stay for evaluation).
+    init_states: str = BENCHMARK_INITS
     processes: int = 2
     keep: str = "successful episodes only"
     image_size: int = 0
@@ -69,7 +76,12 @@ class DataRecipe:
 
     def episodes(self) -> list[tuple[int, int, int]]:
         """(task, seed, init_state_index), interleaved over tasks so a time budget cuts evenly."""
-        eps = [(t, self.seed_offset + s, (self.seed_offset + s) % 50)
+        from services.env_worker.families import SAMPLED_LAYOUT
+
+        if self.init_states not in (BENCHMARK_INITS, SAMPLED_LAYOUTS):
+            raise ValueError(f"init_states {self.init_states!r}: use {BENCHMARK_INITS!r} or {SAMPLED_LAYOUTS!r}")
+        sampled = self.init_states == SAMPLED_LAYOUTS
+        eps = [(t, self.seed_offset + s, SAMPLED_LAYOUT if sampled else (self.seed_offset + s) % 50)
                for s in range(self.seeds_per_task) for t in self.tasks]
         return eps[: self.max_episodes] if self.max_episodes else eps
 
@@ -302,6 +314,8 @@ def main(argv=None) -> int:
     p.add_argument("--dagger-checkpoint", default="")
     p.add_argument("--beta", type=float, default=0.5)
     p.add_argument("--seed-offset", type=int, default=1000)
+    p.add_argument("--sampled-layouts", action="store_true",
+                   help="start each episode from the layout sampled from its seed, not a benchmark init state")
     p.add_argument("--action-noise", type=float, default=0.0, help="DART noise std on the executed arm action")
     p.add_argument("--execute-steps", type=int, default=1, help="DAgger: student actions run per chunk")
     p.add_argument("--max-episodes", type=int, default=0, help="run only the first N episodes of the list")
@@ -316,7 +330,8 @@ def main(argv=None) -> int:
                         image_size=a.image_size, image_every=a.image_every, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
                         action_noise=a.action_noise, execute_steps=a.execute_steps,
-                        max_episodes=a.max_episodes, student_noise=a.student_noise)
+                        max_episodes=a.max_episodes, student_noise=a.student_noise,
+                        init_states=SAMPLED_LAYOUTS if a.sampled_layouts else BENCHMARK_INITS)
     print(json.dumps(collect(recipe, a.out), indent=2))
     return 0
 
