@@ -4,6 +4,8 @@
   python scripts/gen_results.py oracle throughput    # only these topics
   python scripts/gen_results.py evolution --from runs/experiment/results.json   # publish a run, then render
   python scripts/gen_results.py --check              # exit 1 when a page differs from its results file
+  python scripts/gen_results.py evolution --superseded "rerun: zetta evolve experiment ..."
+      # the shipped checkpoint changed and the run is not re-measured yet: its page says so
 
 A results file records the command that measured it and the commit the code ran at; the commands
 that write them are listed in docs/results/README.md. Pages are never edited by hand.
@@ -24,7 +26,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "clients" / "python")]
 
-from services.common.provenance import RESULTS_DIR, page_header  # noqa: E402 - after the path set-up above
+from services.common.provenance import RESULTS_DIR, page_header, superseded  # noqa: E402 - after the path set-up above
 
 #: topic -> (module or script path, the function rendering a results file's page).
 TOPICS: dict[str, tuple[str, str]] = {
@@ -71,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR, help="where the results files are")
     p.add_argument("--out-dir", type=Path, default=None, help="write the pages here (default: beside their files)")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is out of date")
+    p.add_argument("--superseded", metavar="NOTE", default=None,
+                   help="mark the topic's results file as measured on weights that are no longer the shipped ones "
+                        "(one topic; NOTE says what re-measures it)")
     a = p.parse_args(argv)
     unknown = [t for t in a.topics if t not in TOPICS]
     found = sorted(f.stem for f in a.results_dir.glob("*.json"))
@@ -82,6 +87,15 @@ def main(argv: list[str] | None = None) -> int:
             p.error("--from goes with exactly one topic")
         shutil.copyfile(a.source, a.results_dir / f"{a.topics[0]}.json")
         found = sorted({*found, a.topics[0]})
+    if a.superseded is not None:
+        if len(a.topics) != 1:
+            p.error("--superseded goes with exactly one topic")
+        from services.common.policies import default_checkpoint
+        from services.common.provenance import weights_sha256
+
+        data = a.results_dir / f"{a.topics[0]}.json"
+        marked = superseded(json.loads(data.read_text()), weights_sha256(default_checkpoint()), a.superseded)
+        data.write_text(json.dumps(marked, indent=1) + "\n")
     topics = a.topics or found
     stale = []
     for topic in topics:

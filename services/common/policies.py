@@ -114,9 +114,16 @@ def policy_env_config(model: str) -> dict[str, Any]:
     return render_config([TensorSpec(i["name"], i["dtype"], tuple(i["shape"])) for i in doc["inputs"]])
 
 
+#: A data recipe's ``init_states``: the benchmark's fixed initial states (seed % 50), or layouts
+#: sampled from each seed (init_state_index -1), which are none of the benchmark's states.
+BENCHMARK_INITS = "init_state_index = seed % 50"
+SAMPLED_LAYOUTS = "sampled layout per seed (init_state_index -1)"
+
+
 def training_init_states(checkpoint: str | Path | None) -> dict[str, list[int]]:
     """LIBERO init states per suite that a checkpoint's demonstrations came from (its data recipes;
-    {} for a checkpoint that records none). A reported number must start from others."""
+    {} for a checkpoint that records none; sets on sampled layouts use none). A reported number
+    must start from others."""
     config = Path(checkpoint) / "config.json" if checkpoint else None
     if config is None or not config.is_file():
         return {}
@@ -124,6 +131,8 @@ def training_init_states(checkpoint: str | Path | None) -> dict[str, list[int]]:
     out: dict[str, set[int]] = {}
     for r in doc.get("data", {}).get("recipes", []):
         recipe = r.get("recipe", r)
+        if recipe.get("init_states", BENCHMARK_INITS) == SAMPLED_LAYOUTS:
+            continue
         n = recipe.get("max_episodes") or recipe["seeds_per_task"] * len(recipe["tasks"])
         per_task = -(-n // len(recipe["tasks"]))
         seeds = range(recipe["seed_offset"], recipe["seed_offset"] + per_task)

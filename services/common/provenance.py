@@ -58,7 +58,23 @@ def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
              f"- commit: `{commit[:12]}`{dirty}" + (f", {doc['date']}" if doc.get("date") else "")]
     if src.get("note"):
         lines.append(f"- {src['note']}")
+    if doc.get("superseded"):
+        old = doc["superseded"]
+        lines.append(f"- **Measured with earlier weights** (model.pt sha256 `{old['measured_sha256'][:12]}`), not the "
+                     f"shipped checkpoint's (`{old['shipped_sha256'][:12]}`): the figures reproduce at commit "
+                     f"`{commit[:12]}`, not with the shipped policy, until the command above is rerun. {old.get('note', '')}"
+                     .rstrip())
     return "\n".join(lines) + "\n"
+
+
+def superseded(doc: Mapping[str, Any], shipped_sha256: str, note: str = "") -> dict[str, Any]:
+    """``doc`` marked as measured on weights that are no longer the shipped ones (its page says so
+    at the top); the results file's figures stay those of the weights it names."""
+    policy = doc.get("policy") if isinstance(doc.get("policy"), dict) else doc
+    measured = str(policy.get("checkpoint_sha256") or "")
+    if not measured or measured == shipped_sha256:
+        raise ValueError("the results file names no weights, or the shipped ones: nothing is superseded")
+    return {**doc, "superseded": {"measured_sha256": measured, "shipped_sha256": shipped_sha256, "note": note}}
 
 
 def write_results(topic: str, doc: Mapping[str, Any], page: str, directory: Path = RESULTS_DIR) -> list[Path]:

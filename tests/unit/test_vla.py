@@ -241,6 +241,23 @@ def test_pipeline_reuses_only_teacher_sets_with_the_same_recipe(tmp_path) -> Non
     assert not reuse_demos(dagger, path), "a DAgger set depends on the checkpoint's weights, never reused"
 
 
+def test_pipeline_rounds_take_their_episodes_and_fresh_rounds_drop_the_older_sets() -> None:
+    from services.policy_worker.vla.train import PipelineConfig, _int_list
+
+    pipe = PipelineConfig(dagger_rounds=3, dagger_episodes=[150, 300, 0], dagger_sampled_episodes=[0, 300],
+                          fresh_from_round=2)
+    assert [pipe.round_episodes(r) for r in range(3)] == [(150, 0), (300, 300), (0, 300)]
+    assert PipelineConfig(dagger_episodes=150).round_episodes(2) == (150, 0), "a stored int still reads"  # type: ignore[arg-type]
+    base = ["clean", "noisy"]
+    dagger = [(0, "d1")]
+    assert pipe.round_data(0, base, dagger) == ["clean", "noisy", "d1"], "round 1 aggregates"
+    dagger += [(1, "d2"), (1, "d2s")]
+    assert pipe.round_data(1, base, dagger) == ["d2", "d2s"]
+    assert pipe.round_data(2, base, dagger + [(2, "d3s")]) == ["d2", "d2s", "d3s"]
+    assert PipelineConfig().round_data(1, base, dagger) == ["clean", "noisy", "d1", "d2", "d2s"]
+    assert _int_list("150") == [150] and _int_list("[150, 300]") == _int_list("150,300") == [150, 300]
+
+
 def test_gaussian_start_is_seeded_per_request(instruction) -> None:
     """The same request draws the same x0 whatever else shares its batch and whichever policy
     instance serves it; another observation or another policy seed draws another one."""

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from services.policy_worker.vla.evaluate import done_rows
-from services.common.policies import training_init_states
+from services.common.policies import SAMPLED_LAYOUTS, training_init_states
 from services.policy_worker.vla.results import _ranges, render, summarize, write_results
 
 
@@ -38,7 +38,13 @@ def test_summary_counts_and_intervals() -> None:
 
 
 def test_training_init_states_come_from_the_recipes(tmp_path) -> None:
-    assert training_init_states(_checkpoint(tmp_path)) == {"libero_goal": list(range(30))}
+    ck = _checkpoint(tmp_path)
+    assert training_init_states(ck) == {"libero_goal": list(range(30))}
+    doc = json.loads((ck / "config.json").read_text())
+    sampled = {**doc["data"]["recipes"][0]["recipe"], "seed_offset": 5030, "init_states": SAMPLED_LAYOUTS}
+    doc["data"]["recipes"].append({"recipe": sampled})  # its seeds map to no benchmark state
+    (ck / "config.json").write_text(json.dumps(doc))
+    assert training_init_states(ck) == {"libero_goal": list(range(30))}
 
 
 def test_results_refuse_init_states_the_checkpoint_trained_on(tmp_path) -> None:

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from services.common.policies import BENCHMARK_INITS, SAMPLED_LAYOUTS
 from services.common.progress import add_progress_option, progress
 from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, state_vector
 
@@ -29,11 +30,6 @@ def default_teacher() -> str:
     from services.policy_worker.models.base import FACTORIES
 
     return "oracle" if "oracle" in FACTORIES else "scripted-pick-place"
-
-
-#: DataRecipe.init_states: the benchmark's fixed initial states, or layouts sampled from each seed.
-BENCHMARK_INITS = "init_state_index = seed % 50"
-SAMPLED_LAYOUTS = "sampled layout per seed (init_state_index -1)"
 
 
 @dataclass

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import random
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -264,11 +264,34 @@ class PipelineConfig:
     steps: int = 20000
     lr: float = 1e-3
     dagger_rounds: int = 3
-    dagger_episodes: int = 150
+    #: DAgger episodes of each round (a list shorter than the rounds repeats its last entry) on the
+    #: benchmark's layouts (init state seed % 50, seeds from 3000 + 1000 r for round r + 1) ...
+    dagger_episodes: list[int] = field(default_factory=lambda: [150])
+    #: ... and on layouts sampled from each seed (none of the benchmark's 50; seeds from 4000 + 1000 r,
+    #: which may repeat a benchmark set's seeds: the layouts differ).
+    dagger_sampled_episodes: list[int] = field(default_factory=lambda: [0])
+    #: From this round on (1-based), a round fine-tunes on the DAgger sets of the rounds since it
+    #: only: the teacher-only sets and earlier rounds cover states the policy no longer visits.
+    #: 0: every round fine-tunes on the aggregate of every set.
+    fresh_from_round: int = 0
     beta: float = 0.2
     execute_steps: int = 2
     finetune_steps: int = 8000
     finetune_lr: float = 5e-4
+
+    def round_episodes(self, r: int) -> tuple[int, int]:
+        """(benchmark-layout, sampled-layout) DAgger episodes of round ``r`` (0-based)."""
+        def pick(v: list[int] | int) -> int:
+            v = [v] if isinstance(v, int) else v
+            return int(v[min(r, len(v) - 1)]) if v else 0
+
+        return pick(self.dagger_episodes), pick(self.dagger_sampled_episodes)
+
+    def round_data(self, r: int, base: list[str], dagger: list[tuple[int, str]]) -> list[str]:
+        """The sets round ``r`` (0-based) fine-tunes on, given the base sets and (round, path) DAgger sets."""
+        if self.fresh_from_round and r + 1 >= self.fresh_from_round:
+            return [path for k, path in dagger if k + 1 >= self.fresh_from_round]
+        return base + [path for _, path in dagger]
 
 
 def reuse_demos(recipe: DataRecipe, path: str) -> bool:
@@ -290,7 +313,11 @@ def reuse_demos(recipe: DataRecipe, path: str) -> bool:
 
 def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int], processes: int,
                  train_cfg: TrainConfig, model_cfg: VLAConfig, demo_dir: str = "out/demos", log=print) -> dict:
-    """Demos (clean + DART-noisy) -> training -> DAgger rounds; the last checkpoint lands in ``out``."""
+    """Demos (clean + DART-noisy) -> training -> DAgger rounds; the last checkpoint lands in ``out``.
+
+    A stage already trained on its data with its configuration is reused, and the sets only it
+    needed are then not collected again (a resumed or extended pipeline starts where it stopped)."""
+    from services.common.policies import SAMPLED_LAYOUTS
     from services.policy_worker.vla.data import DataRecipe, collect
 
     def gather(name: str, episodes: int, **kw) -> str:
@@ -305,23 +332,37 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
         return path
 
     meta = {"pipeline": asdict(pipe)}
-    data = [gather("clean", pipe.clean_episodes, seed_offset=1000)]
+    teacher_sets = [("clean", pipe.clean_episodes, {"seed_offset": 1000})]
     if pipe.noisy_episodes:
-        data.append(gather("noisy", pipe.noisy_episodes, seed_offset=2000, action_noise=pipe.action_noise))
+        teacher_sets.append(("noisy", pipe.noisy_episodes, {"seed_offset": 2000, "action_noise": pipe.action_noise}))
+    base = [f"{demo_dir}/{name}.npz" for name, _, _ in teacher_sets]
     stages = [f"{out}-round{r}" for r in range(pipe.dagger_rounds)] + [out]
-    def stage(out_dir: str, cfg: TrainConfig, init: str = "") -> dict:
+
+    def stage(out_dir: str, data: list[str], cfg: TrainConfig, init: str = "") -> dict:
         done = finished_stage(out_dir, data, cfg, init)
         if done is not None:
             log(f"reusing {out_dir}: trained on these files with this configuration")
             return done
+        for name, episodes, kw in teacher_sets:
+            if f"{demo_dir}/{name}.npz" in data:
+                gather(name, episodes, **kw)
         return train(list(data), out_dir, model_cfg, cfg, log=log, init=init, extra_meta=meta)
 
-    result = stage(stages[0], dataclasses_replace(train_cfg, steps=pipe.steps, lr=pipe.lr))
+    result = stage(stages[0], base, dataclasses_replace(train_cfg, steps=pipe.steps, lr=pipe.lr))
+    dagger: list[tuple[int, str]] = []
+    finetune = dataclasses_replace(train_cfg, steps=pipe.finetune_steps, lr=pipe.finetune_lr)
     for r in range(pipe.dagger_rounds):
-        data.append(gather(f"dagger{r + 1}", pipe.dagger_episodes, seed_offset=3000 + 1000 * r,
-                           dagger_checkpoint=stages[r], beta=pipe.beta, execute_steps=pipe.execute_steps))
-        result = stage(stages[r + 1], dataclasses_replace(train_cfg, steps=pipe.finetune_steps, lr=pipe.finetune_lr),
-                       init=stages[r])
+        on_benchmark, on_sampled = pipe.round_episodes(r)
+        sets = [(f"dagger{r + 1}", on_benchmark, {"seed_offset": 3000 + 1000 * r}),
+                (f"dagger{r + 1}s", on_sampled, {"seed_offset": 4000 + 1000 * r, "init_states": SAMPLED_LAYOUTS})]
+        dagger += [(r, f"{demo_dir}/{name}.npz") for name, n, _ in sets if n]
+        data = pipe.round_data(r, base, dagger)
+        if finished_stage(stages[r + 1], data, finetune, stages[r]) is None:
+            for name, n, kw in sets:
+                if n:
+                    gather(name, n, dagger_checkpoint=stages[r], beta=pipe.beta, execute_steps=pipe.execute_steps,
+                           **kw)
+        result = stage(stages[r + 1], data, finetune, init=stages[r])
     return result
 
 
@@ -339,6 +380,11 @@ def finished_stage(out_dir: str, data: list[str], cfg: TrainConfig, init: str) -
     return meta if training.get("steps_done") == cfg.steps else None
 
 
+def _int_list(text: str) -> list[int]:
+    """``150`` or ``150,300`` (a stored pipeline's ``[150, 300]`` too)."""
+    return [int(x) for x in text.strip("[]").replace(" ", "").split(",") if x]
+
+
 def main(argv=None) -> int:
     import argparse
 
@@ -354,7 +400,12 @@ def main(argv=None) -> int:
     p.add_argument("--noisy-episodes", type=int, default=PipelineConfig.noisy_episodes)
     p.add_argument("--action-noise", type=float, default=PipelineConfig.action_noise)
     p.add_argument("--dagger-rounds", type=int, default=PipelineConfig.dagger_rounds)
-    p.add_argument("--dagger-episodes", type=int, default=PipelineConfig.dagger_episodes)
+    p.add_argument("--dagger-episodes", type=_int_list, default=[150],
+                   help="DAgger episodes per round on the benchmark's layouts, e.g. 150,300 (the last repeats)")
+    p.add_argument("--dagger-sampled-episodes", type=_int_list, default=[0],
+                   help="DAgger episodes per round on layouts sampled from the seed (none of the benchmark's)")
+    p.add_argument("--fresh-from-round", type=int, default=PipelineConfig.fresh_from_round,
+                   help="from this round on, fine-tune on the DAgger sets since it only (0: the aggregate)")
     p.add_argument("--beta", type=float, default=PipelineConfig.beta)
     p.add_argument("--execute-steps", type=int, default=PipelineConfig.execute_steps)
     p.add_argument("--finetune-steps", type=int, default=PipelineConfig.finetune_steps)
@@ -383,7 +434,8 @@ def main(argv=None) -> int:
     tasks = list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS)
     pipe = PipelineConfig(
         clean_episodes=a.clean_episodes, noisy_episodes=a.noisy_episodes, action_noise=a.action_noise,
-        steps=a.steps, lr=a.lr, dagger_rounds=a.dagger_rounds, dagger_episodes=a.dagger_episodes, beta=a.beta,
+        steps=a.steps, lr=a.lr, dagger_rounds=a.dagger_rounds, dagger_episodes=a.dagger_episodes,
+        dagger_sampled_episodes=a.dagger_sampled_episodes, fresh_from_round=a.fresh_from_round, beta=a.beta,
         execute_steps=a.execute_steps, finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr)
     run_pipeline(out, pipe, teacher, tasks, a.processes, train_cfg, model_cfg, demo_dir=a.demo_dir)
     return 0
