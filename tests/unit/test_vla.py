@@ -242,6 +242,7 @@ def test_pipeline_reuses_only_teacher_sets_with_the_same_recipe(tmp_path) -> Non
 
 
 def test_pipeline_rounds_take_their_episodes_and_fresh_rounds_drop_the_older_sets() -> None:
+    """Per-round episode counts (the last repeats); a fresh round keeps the clean set and its own rounds'."""
     from services.policy_worker.vla.train import PipelineConfig, _int_list
 
     pipe = PipelineConfig(dagger_rounds=3, dagger_episodes=[150, 300, 0], dagger_sampled_episodes=[0, 300],
@@ -252,8 +253,8 @@ def test_pipeline_rounds_take_their_episodes_and_fresh_rounds_drop_the_older_set
     dagger = [(0, "d1")]
     assert pipe.round_data(0, base, dagger) == ["clean", "noisy", "d1"], "round 1 aggregates"
     dagger += [(1, "d2"), (1, "d2s")]
-    assert pipe.round_data(1, base, dagger) == ["d2", "d2s"]
-    assert pipe.round_data(2, base, dagger + [(2, "d3s")]) == ["d2", "d2s", "d3s"]
+    assert pipe.round_data(1, base, dagger) == ["clean", "d2", "d2s"], "the clean set anchors a fresh round"
+    assert pipe.round_data(2, base, dagger + [(2, "d3s")]) == ["clean", "d2", "d2s", "d3s"]
     assert PipelineConfig().round_data(1, base, dagger) == ["clean", "noisy", "d1", "d2", "d2s"]
     assert _int_list("150") == [150] and _int_list("[150, 300]") == _int_list("150,300") == [150, 300]
 

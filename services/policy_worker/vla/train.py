@@ -270,9 +270,10 @@ class PipelineConfig:
     #: ... and on layouts sampled from each seed (none of the benchmark's 50; seeds from 4000 + 1000 r,
     #: which may repeat a benchmark set's seeds: the layouts differ).
     dagger_sampled_episodes: list[int] = field(default_factory=lambda: [0])
-    #: From this round on (1-based), a round fine-tunes on the DAgger sets of the rounds since it
-    #: only: the teacher-only sets and earlier rounds cover states the policy no longer visits.
-    #: 0: every round fine-tunes on the aggregate of every set.
+    #: From this round on (1-based), a round fine-tunes on the clean teacher set and the DAgger sets
+    #: of the rounds since it only: the DART set and earlier rounds cover states the policy no
+    #: longer visits, the clean demonstrations keep it on the teacher's path (without them a round
+    #: forgot whole tasks). 0: every round fine-tunes on the aggregate of every set.
     fresh_from_round: int = 0
     beta: float = 0.2
     execute_steps: int = 2
@@ -288,9 +289,10 @@ class PipelineConfig:
         return pick(self.dagger_episodes), pick(self.dagger_sampled_episodes)
 
     def round_data(self, r: int, base: list[str], dagger: list[tuple[int, str]]) -> list[str]:
-        """The sets round ``r`` (0-based) fine-tunes on, given the base sets and (round, path) DAgger sets."""
+        """The sets round ``r`` (0-based) fine-tunes on, given the teacher sets (clean first) and the
+        (round, path) DAgger sets."""
         if self.fresh_from_round and r + 1 >= self.fresh_from_round:
-            return [path for k, path in dagger if k + 1 >= self.fresh_from_round]
+            return base[:1] + [path for k, path in dagger if k + 1 >= self.fresh_from_round]
         return base + [path for _, path in dagger]
 
 
@@ -405,7 +407,8 @@ def main(argv=None) -> int:
     p.add_argument("--dagger-sampled-episodes", type=_int_list, default=[0],
                    help="DAgger episodes per round on layouts sampled from the seed (none of the benchmark's)")
     p.add_argument("--fresh-from-round", type=int, default=PipelineConfig.fresh_from_round,
-                   help="from this round on, fine-tune on the DAgger sets since it only (0: the aggregate)")
+                   help="from this round on, fine-tune on the clean set and the DAgger sets since it only "
+                        "(0: the aggregate)")
     p.add_argument("--beta", type=float, default=PipelineConfig.beta)
     p.add_argument("--execute-steps", type=int, default=PipelineConfig.execute_steps)
     p.add_argument("--finetune-steps", type=int, default=PipelineConfig.finetune_steps)
