@@ -70,7 +70,7 @@ def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
 def superseded(doc: Mapping[str, Any], shipped_sha256: str, note: str = "") -> dict[str, Any]:
     """``doc`` marked as measured on weights that are no longer the shipped ones (its page says so
     at the top); the results file's figures stay those of the weights it names."""
-    policy = doc.get("policy") if isinstance(doc.get("policy"), dict) else doc
+    policy = doc["policy"] if isinstance(doc.get("policy"), Mapping) else doc
     measured = str(policy.get("checkpoint_sha256") or "")
     if not measured or measured == shipped_sha256:
         raise ValueError("the results file names no weights, or the shipped ones: nothing is superseded")
