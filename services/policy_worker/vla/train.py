@@ -260,6 +260,9 @@ class PipelineConfig:
 
     clean_episodes: int = 400
     noisy_episodes: int = 250
+    #: Where the clean and DART episodes start: "benchmark" (init state seed % 50) or "sampled"
+    #: (a layout sampled from each seed, none of the benchmark's 50: as many layouts as episodes).
+    teacher_layouts: str = "benchmark"
     action_noise: float = 0.15
     steps: int = 20000
     lr: float = 1e-3
@@ -334,9 +337,13 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
         return path
 
     meta = {"pipeline": asdict(pipe)}
-    teacher_sets = [("clean", pipe.clean_episodes, {"seed_offset": 1000})]
+    if pipe.teacher_layouts not in ("benchmark", "sampled"):
+        raise ValueError(f"teacher_layouts {pipe.teacher_layouts!r}: use 'benchmark' or 'sampled'")
+    layouts = {"init_states": SAMPLED_LAYOUTS} if pipe.teacher_layouts == "sampled" else {}
+    teacher_sets = [("clean", pipe.clean_episodes, {"seed_offset": 1000, **layouts})]
     if pipe.noisy_episodes:
-        teacher_sets.append(("noisy", pipe.noisy_episodes, {"seed_offset": 2000, "action_noise": pipe.action_noise}))
+        teacher_sets.append(("noisy", pipe.noisy_episodes,
+                             {"seed_offset": 2000, "action_noise": pipe.action_noise, **layouts}))
     base = [f"{demo_dir}/{name}.npz" for name, _, _ in teacher_sets]
     stages = [f"{out}-round{r}" for r in range(pipe.dagger_rounds)] + [out]
 
@@ -401,6 +408,8 @@ def main(argv=None) -> int:
     p.add_argument("--clean-episodes", type=int, default=PipelineConfig.clean_episodes)
     p.add_argument("--noisy-episodes", type=int, default=PipelineConfig.noisy_episodes)
     p.add_argument("--action-noise", type=float, default=PipelineConfig.action_noise)
+    p.add_argument("--teacher-layouts", choices=("benchmark", "sampled"), default=PipelineConfig.teacher_layouts,
+                   help="clean and DART episodes on benchmark init states or on layouts sampled from each seed")
     p.add_argument("--dagger-rounds", type=int, default=PipelineConfig.dagger_rounds)
     p.add_argument("--dagger-episodes", type=_int_list, default=[150],
                    help="DAgger episodes per round on the benchmark's layouts, e.g. 150,300 (the last repeats)")
@@ -437,6 +446,7 @@ def main(argv=None) -> int:
     tasks = list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS)
     pipe = PipelineConfig(
         clean_episodes=a.clean_episodes, noisy_episodes=a.noisy_episodes, action_noise=a.action_noise,
+        teacher_layouts=a.teacher_layouts,
         steps=a.steps, lr=a.lr, dagger_rounds=a.dagger_rounds, dagger_episodes=a.dagger_episodes,
         dagger_sampled_episodes=a.dagger_sampled_episodes, fresh_from_round=a.fresh_from_round, beta=a.beta,
         execute_steps=a.execute_steps, finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr)
