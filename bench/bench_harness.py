@@ -41,7 +41,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from services.common.policies import EXECUTE_STEPS
-from services.common.provenance import page_header, provenance, write_results
+from services.common.provenance import page_header, publish
 from services.harness.runtime.budget import CODE_CRITIC_EVERY
 
 if TYPE_CHECKING:  # the env worker's modules load LIBERO: imported when a run starts, not for a page
@@ -294,9 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     doc = measure(a)
     print("\n".join(report(doc)))
     if a.write_docs:
-        command = "python bench/bench_harness.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        doc = {"title": TITLE, **provenance(command.strip(), Path(__file__).resolve().parents[1]), **doc}
-        for path in write_results(TOPIC, doc, page(doc)):
+        args = list(argv if argv is not None else sys.argv[1:])
+        for path in publish(TOPIC, TITLE, "bench/bench_harness.py", args, doc, page, Path(__file__).resolve().parents[1]):
             print(f"wrote {path}")
     return 0
 

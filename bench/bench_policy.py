@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.common.provenance import page_header, provenance, weights_sha256, write_results
+from services.common.provenance import page_header, publish, weights_sha256
 from services.common.specs import TensorSpec
 from services.policy_worker.scheduler import DeadlineExceededError, InferItem, SchedulerConfig
 
@@ -284,9 +284,8 @@ def main(argv: list[str] | None = None) -> int:
     doc = measure(a)
     print("\n".join(report(doc)))
     if a.write_docs:
-        command = "python bench/bench_policy.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        doc = {"title": TITLE, **provenance(command.strip(), Path(__file__).resolve().parents[1]), **doc}
-        for path in write_results(TOPIC, doc, page(doc)):
+        args = list(argv if argv is not None else sys.argv[1:])
+        for path in publish(TOPIC, TITLE, "bench/bench_policy.py", args, doc, page, Path(__file__).resolve().parents[1]):
             print(f"wrote {path}")
     return 0
 

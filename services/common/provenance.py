@@ -12,7 +12,7 @@ import hashlib
 import json
 import subprocess
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +75,15 @@ def superseded(doc: Mapping[str, Any], shipped_sha256: str, note: str = "") -> d
     if not measured or measured == shipped_sha256:
         raise ValueError("the results file names no weights, or the shipped ones: nothing is superseded")
     return {**doc, "superseded": {"measured_sha256": measured, "shipped_sha256": shipped_sha256, "note": note}}
+
+
+def publish(topic: str, title: str, script: str, argv: list[str], doc: Mapping[str, Any],
+            render: Callable[[Mapping[str, Any]], str], root: Path, directory: Path = RESULTS_DIR) -> list[Path]:
+    """Write a bench's measurements as ``<topic>.json`` and its page, with the command that reruns
+    them (``python <script> <argv>``) and the commit they ran at."""
+    command = " ".join(["python", script, *argv])
+    full = {"title": title, **provenance(command, root), **doc}
+    return write_results(topic, full, render(full), directory)
 
 
 def write_results(topic: str, doc: Mapping[str, Any], page: str, directory: Path = RESULTS_DIR) -> list[Path]:

@@ -138,3 +138,15 @@ def test_a_superseded_results_file_says_so_at_the_top_of_its_page() -> None:
     assert "**Measured with earlier weights** (model.pt sha256 `aaaaaaaaaaaa`)" in page and "rerun: zetta x" in page
     with pytest.raises(ValueError):
         superseded(doc, "a" * 64)
+
+
+def test_a_published_bench_names_the_command_that_reruns_it(tmp_path: Path) -> None:
+    from services.common.provenance import page_header, publish
+
+    paths = publish("x-bench", "X bench", "bench/x.py", ["--write-docs", "--n", "3"], {"rows": [1]},
+                    lambda d: page_header("x-bench", d["title"], d), ROOT, tmp_path)
+    doc = json.loads((tmp_path / "x-bench.json").read_text())
+    assert paths == [tmp_path / "x-bench.json", tmp_path / "x-bench.md"]
+    assert doc["command"] == "python bench/x.py --write-docs --n 3" and doc["rows"] == [1] and doc["title"] == "X bench"
+    assert len(doc["source"]["commit"]) == 40
+    assert "`python bench/x.py --write-docs --n 3`" in (tmp_path / "x-bench.md").read_text()
