@@ -16,7 +16,7 @@ import re
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -170,8 +170,11 @@ class SlotHarness:
         """The instruction the policy is asked under while a recovery redirects it ("" otherwise)."""
         return self.decision.instruction
 
-    def run_chunk(self, env: Any, chunk: np.ndarray, max_steps: int, step_hist: Any) -> tuple[Any, np.ndarray, float, int]:
-        """Execute up to ``len(chunk)`` actions, each the recovery's when one has control.
+    def run_chunk(self, env: Any, chunk: np.ndarray, max_steps: int, step_hist: Any,
+                  on_step: Callable[[Mapping[str, np.ndarray]], None] | None = None
+                  ) -> tuple[Any, np.ndarray, float, int]:
+        """Execute up to ``len(chunk)`` actions, each the recovery's when one has control (``on_step``
+        sees each step's observation).
 
         Returns the last outcome, the actions actually executed ([n, dim]), the summed reward and
         how many of them a recovery chose. Stops early at the end of the episode, when a recovery
@@ -193,6 +196,8 @@ class SlotHarness:
             step_hist.observe(time.perf_counter() - start)
             reward += outcome.reward
             executed.append(action)
+            if on_step is not None:
+                on_step(outcome.observation)
             self.decision = self.runtime.step(outcome.observation, action, milestone_set(outcome.observation, self.names))
             if outcome.terminated or outcome.truncated or env.episode_step >= max_steps:
                 break

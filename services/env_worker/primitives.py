@@ -9,7 +9,7 @@ acts exactly as a harness does. Both run on the slot's thread like every other s
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -72,6 +72,7 @@ def move(slot: BoundSlot, m: types_pb2.Motion) -> types_pb2.StepResult:
     dim = slot.family.action_spec().shape[-1]
     dtype = np.dtype(slot.family.action_spec().dtype)
     executed: list[np.ndarray] = []
+    steps: list[Mapping[str, np.ndarray]] = []
     reward = 0.0
     run: ChunkRun | None = None
     for _ in range(m.max_steps):
@@ -84,6 +85,7 @@ def move(slot: BoundSlot, m: types_pb2.Motion) -> types_pb2.StepResult:
         chunk = np.clip(action[:dim], -1.0, 1.0).astype(dtype)[None]
         run = run_chunk(slot, chunk, render=False)
         executed.append(run.actions[0])
+        steps += run.steps
         reward += run.reward
         obs = run.outcome.observation
         if slot.episode is None or slot.episode.ended:
@@ -91,4 +93,4 @@ def move(slot: BoundSlot, m: types_pb2.Motion) -> types_pb2.StepResult:
     assert run is not None
     run.outcome.observation = slot.env.observe()  # with the camera images the steps skipped
     slot.last_obs = run.outcome.observation
-    return step_result(slot, ChunkRun(run.outcome, np.stack(executed), reward, run.truncated, 0))
+    return step_result(slot, ChunkRun(run.outcome, np.stack(executed), reward, run.truncated, 0, steps))

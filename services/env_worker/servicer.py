@@ -181,6 +181,7 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             episode_id=episode_id,
             instruction=spec.instruction or instruction,
             max_steps=slot.family.max_episode_steps(spec.task),
+            record_steps=spec.record_steps,
         )
         episode.perception = primitives.episode_perception(obs, episode.instruction)
         slot.episode = episode

@@ -46,6 +46,8 @@ class Episode:
     success: bool = False
     #: The episode's perception tool for Perceive (services/env_worker/primitives.py), seeded at reset.
     perception: Any = None
+    #: ResetSpec.record_steps: every step's observation rides back with its chunk (offline traces).
+    record_steps: bool = False
 
 
 class SlotActivity:

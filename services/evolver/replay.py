@@ -3,8 +3,11 @@
 The runtime feeds critics a sliding window of Frames; the replay rebuilds those frames from the
 trace as the runtime builds them (the observation tensors a harness may read, the perception
 tool with its default noise over the recorded state, the last action that led to each frame,
-milestones reached so far) and reports the first env step at which a predicate held. The trace is recorded at the policy's call
-rate, so a window of n frames spans n policy calls here.
+milestones reached so far) and reports the first env step at which a predicate held. A trace that
+recorded every step (``Trace.step_obs``, what the evolver's rollouts record) replays step by step,
+as the runtime runs critics: library predicates at every step, a code critic every
+``ZETTA_CODE_CRITIC_EVERY`` steps, so a window of n frames spans n env steps as it does at runtime.
+A trace recorded at the policy's call rate only replays one frame per call.
 
 Library predicates are platform code and run here. A code critic (package code: one an LLM wrote,
 tools/c_llm_<hash>.py) never runs in the evolver's process: :class:`SandboxedCritic` loads it in a
@@ -32,7 +35,9 @@ WINDOW = 64
 
 
 def frames(trace: Trace) -> list[Frame]:
-    """The trace as the runtime's Frames."""
+    """The trace as the runtime's Frames: one per env step when it recorded every step."""
+    if trace.step_obs:
+        return _step_frames(trace)
     reached = trace.mu_reached
     last_action: dict[int, np.ndarray] = {}
     for i, k in enumerate(trace.action_frame):
@@ -48,6 +53,31 @@ def frames(trace: Trace) -> list[Frame]:
         out.append(Frame(step=int(trace.frame_step[k]), obs=signals.visible(obs), action=last_action.get(k),
                          milestones=mu, perceive=perception.sensor(obs)))
     return out
+
+
+def _step_frames(trace: Trace) -> list[Frame]:
+    names = trace.milestone_names
+    mu = trace.step_obs.get("milestones")
+    reached = (np.maximum.accumulate(mu[:, : len(names)] > 0.5, axis=0) if mu is not None
+               else np.zeros((trace.steps, len(names)), dtype=bool))
+    out: list[Frame] = []
+    perception: Perception | None = None
+    for t in range(trace.steps):
+        obs = {name: v[t] for name, v in trace.step_obs.items()}
+        if perception is None:
+            perception = Perception(episode_seed(obs, ""))
+        out.append(Frame(step=t, obs=signals.visible(obs), action=trace.actions[t - 1] if t else None,
+                         milestones=frozenset(n for n, r in zip(names, reached[t]) if r),
+                         perceive=perception.sensor(obs)))
+    return out
+
+
+def _replayed(trace: Trace, fs: list[Frame], start: int) -> range:
+    """Indices into ``fs`` from ``start`` (a frame of the trace, as :func:`resume_frame` gives it)
+    on: on a trace that recorded every step, from that frame's env step."""
+    if not trace.step_obs:
+        return range(start, len(fs))
+    return range(int(trace.frame_step[start]) if start < trace.frames else len(fs), len(fs))
 
 
 class ReplayFailed(RuntimeError):
@@ -66,7 +96,10 @@ class SandboxedCritic:
         from services.harness.sandbox.host import SandboxedCode
 
         self.stem = stem
-        self.hard_limit_s = PlatformLimits.from_env().hard_limit_s
+        limits = PlatformLimits.from_env()
+        self.hard_limit_s = limits.hard_limit_s
+        #: The runtime's cadence of code critics (env steps).
+        self.every = limits.code_critic_every
         try:
             self.code = SandboxedCode({stem: source}, {stem: dict(params)}, window)
         except (SandboxError, CallFailed) as exc:
@@ -97,10 +130,13 @@ class SandboxedCritic:
         self.code.start(instruction, trace.milestone_names)
         limit = self.hard_limit_s
         run = [(self.index, False)]
+        every = self.every if trace.step_obs else 1
         try:
-            # The critic runs from ``start`` on; the frames before it reach the child's window
-            # ahead of the first call.
-            for k in range(start, len(fs)):
+            # The critic runs from ``start`` on, at the runtime's cadence; the frames before a call
+            # reach the child's window ahead of it.
+            for k in _replayed(trace, fs, start):
+                if fs[k].step % every:
+                    continue
                 res = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run, lambda i: limit)[0]
                 if res.kind == codec.R_PROPOSAL:
                     return fs[k].step
@@ -122,8 +158,10 @@ def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any] | 
     if isinstance(fn, SandboxedCritic):
         return fn.first_fire(trace, instruction, start, cached)
     fs = cached if cached is not None else frames(trace)
-    for k in range(start, len(fs)):
-        window = Window(frames=fs[max(0, k - WINDOW + 1): k + 1], instruction=instruction,
+    # The runtime's window is widened past every integer parameter (a horizon in frames), so is this.
+    size = max([WINDOW, *(int(v) + 1 for v in params.values() if float(v).is_integer())])
+    for k in _replayed(trace, fs, start):
+        window = Window(frames=fs[max(0, k - size + 1): k + 1], instruction=instruction,
                         milestone_names=trace.milestone_names)
         try:
             hit = fn(window, params)

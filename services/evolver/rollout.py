@@ -73,7 +73,7 @@ class RunConfig:
 
 def _reset_spec(key: EpisodeKey, record_video: bool) -> types_pb2.ResetSpec:
     return types_pb2.ResetSpec(task=key.task, seed=key.seed, init_state_index=key.init_state, record_video=record_video,
-                               harness=key.harness)
+                               harness=key.harness, record_steps=True)
 
 
 def interventions(report: types_pb2.HarnessReport) -> list[dict[str, Any]]:
@@ -89,13 +89,17 @@ async def run_one(gw: Gateway, session_id: str, key: EpisodeKey, cfg: RunConfig)
     reset = (await gw.call("Reset", gateway_pb2.ResetRequest(
         session_ids=[session_id], specs=[_reset_spec(key, cfg.record_video)]))).results[0]
     recorder = TraceRecorder(list(reset.milestone_names))
-    recorder.frame(0, decode_observation(reset.observation))
+    first = decode_observation(reset.observation)
+    recorder.frame(0, first)
+    recorder.step(first)
     budget = cfg.max_steps or reset.max_steps
     policy = types_pb2.PolicySpec(model=cfg.model, execute_steps=cfg.execute_steps, timeout_ms=cfg.policy_timeout_ms)
     video = reset.video_path
     while True:
         r = (await gw.call("PolicyStep", gateway_pb2.PolicyStepRequest(session_ids=[session_id], policy=policy))).results[0]
         recorder.frame(r.episode_step, decode_observation(r.observation), decode(r.executed_actions))
+        for obs in r.step_observations:
+            recorder.step(decode_observation(obs))
         recorder.recovery_steps += r.recovery_actions
         video = r.video_path or video
         if r.terminated or r.truncated or r.episode_step >= budget:

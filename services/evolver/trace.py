@@ -5,6 +5,11 @@ it and measures its divergence from the successful ones. The trace is recorded a
 call rate: frame k is the observation after the k-th executed chunk (frame 0 after the reset),
 ``frame_step[k]`` its env step, and ``actions`` holds every executed action with
 ``action_frame[i]`` the frame it led to. Camera images are not stored here (the video has them).
+
+A trace recorded with ``ResetSpec.record_steps`` also holds ``step_obs``: the observation at every
+env step (entry t after t actions, entry 0 the reset), which is what the runtime's critics saw, so
+a critic replay (services/evolver/replay.py) runs over those, step by step as at runtime. Divergence
+and clustering stay at the call-rate frames.
 """
 
 from __future__ import annotations
@@ -35,6 +40,14 @@ class Trace:
     interventions: list[dict[str, Any]] = field(default_factory=list)
     #: Env steps whose action came from a recovery, not the policy (from the harness report).
     recovery_steps: int = 0
+    #: The observation at every env step ([T + 1, ...] per tensor; entry t after ``actions[t - 1]``),
+    #: empty when the rollout did not record steps.
+    step_obs: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        """Number of per-step observations (T + 1 for a trace recorded with every step, else 0)."""
+        return int(len(next(iter(self.step_obs.values())))) if self.step_obs else 0
 
     @property
     def frames(self) -> int:
@@ -57,6 +70,7 @@ class Trace:
     def to_bytes(self) -> bytes:
         """The compressed npz of this trace."""
         arrays = {f"obs/{k}": v for k, v in self.obs.items()}
+        arrays.update({f"step/{k}": v for k, v in self.step_obs.items()})
         arrays.update(
             frame_step=self.frame_step, actions=self.actions, action_frame=self.action_frame,
             meta=np.frombuffer(json.dumps({"milestone_names": self.milestone_names, "interventions":
@@ -73,9 +87,10 @@ class Trace:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             meta = json.loads(z["meta"].tobytes().decode())
             obs = {k[4:]: z[k] for k in z.files if k.startswith("obs/")}
+            steps = {k[5:]: z[k] for k in z.files if k.startswith("step/")}
             return cls(obs=obs, frame_step=z["frame_step"], actions=z["actions"], action_frame=z["action_frame"],
                        milestone_names=list(meta["milestone_names"]), interventions=list(meta["interventions"]),
-                       recovery_steps=int(meta.get("recovery_steps", 0)))
+                       recovery_steps=int(meta.get("recovery_steps", 0)), step_obs=steps)
 
 
 class TraceRecorder:
@@ -89,6 +104,8 @@ class TraceRecorder:
         self._action_frame: list[int] = []
         self.interventions: list[dict[str, Any]] = []
         self.recovery_steps = 0
+        self._step_obs: dict[str, list[np.ndarray]] = {}
+        self._recorded_steps = 0
 
     def frame(self, step: int, obs: Mapping[str, np.ndarray], executed: np.ndarray | None = None) -> None:
         """Record the observation at env step ``step`` and the actions that led to it."""
@@ -97,20 +114,34 @@ class TraceRecorder:
             acts = np.asarray(executed, dtype=np.float32).reshape(len(executed), -1)
             self._actions.append(acts)
             self._action_frame.extend([k] * len(acts))
-        for name, value in obs.items():
-            if name.endswith(IMAGE_SUFFIX) or np.asarray(value).dtype == np.uint8:
-                continue
-            self._obs.setdefault(name, []).append(np.asarray(value))
+        for name, value in _state(obs).items():
+            self._obs.setdefault(name, []).append(value)
         self._steps.append(int(step))
+
+    def step(self, obs: Mapping[str, np.ndarray]) -> None:
+        """Record the observation of the next env step (the reset's first, then one per action)."""
+        for name, value in _state(obs).items():
+            self._step_obs.setdefault(name, []).append(value)
+        self._recorded_steps += 1
 
     def finish(self) -> Trace:
         """The trace recorded so far."""
         obs = {k: np.stack(v) for k, v in self._obs.items() if len(v) == len(self._steps)}
         actions = np.concatenate(self._actions) if self._actions else np.zeros((0, 7), np.float32)
+        steps = {k: np.stack(v) for k, v in self._step_obs.items() if len(v) == self._recorded_steps}
+        if steps and self._recorded_steps != len(actions) + 1:
+            raise ValueError(f"{self._recorded_steps} step observations for {len(actions)} actions: a trace "
+                             "that records steps has one per action and one for the reset")
         return Trace(obs=obs, frame_step=np.asarray(self._steps, dtype=np.int32), actions=actions,
                      action_frame=np.asarray(self._action_frame, dtype=np.int32),
                      milestone_names=self.milestone_names, interventions=list(self.interventions),
-                     recovery_steps=self.recovery_steps)
+                     recovery_steps=self.recovery_steps, step_obs=steps)
+
+
+def _state(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The tensors a trace keeps: every one but the camera images."""
+    return {name: np.asarray(v) for name, v in obs.items()
+            if not name.endswith(IMAGE_SUFFIX) and np.asarray(v).dtype != np.uint8}
 
 
 def relative_state(obs: Mapping[str, np.ndarray]) -> np.ndarray:

@@ -191,3 +191,72 @@ async def test_harness_from_the_critic_registry_by_name_and_version(
         await group.reset(task="", seed=0, harness="loop-test@999")
     assert err.value.code.name == "NOT_FOUND"
     await group.close()
+
+
+STALL_SKILL = """+++
+name = "stall-test"
+description = "hold when the hand stops"
+
+[runtime]
+critic_budget_ms = 50.0
+critic_hard_limit_ms = 500.0
+
+[reentry]
+gamma = 0.0
+k = 1
+
+[[critics]]
+name = "stall"
+predicate = "stalled_progress"
+evidence = "stalled"
+mode = "hold"
+params = { horizon = 12, min_motion = 0.01 }
+
+[[adjudication]]
+evidence = "stalled"
+mode = "hold"
+priority = 1
++++
+test harness
+"""
+
+
+async def test_a_trace_of_every_step_replays_its_critic_where_the_runtime_fired(gw: Gateway, tmp_path: Path) -> None:
+    """With record_steps each result carries the observation after every executed action (no
+    camera images), and a replay of the package's critic over them fires at the step where the
+    runtime's critic did: a horizon of 12 frames is 12 env steps in both."""
+    from services.evolver.replay import first_fire
+    from services.evolver.trace import TraceRecorder
+    from services.harness.runtime.library import PREDICATES
+
+    pkg = tmp_path / "stall"
+    (pkg / "plans").mkdir(parents=True)
+    (pkg / "SKILL.md").write_text(STALL_SKILL)
+    (pkg / "plans" / "playbooks.toml").write_text(PLANS)
+    group = await gw.create_sessions("robosuite", n=1, env_config={**LIFT, "max_steps": 60})
+    reset = (await group.reset(task="", seed=5, harness_dir=str(pkg), record_steps=True))[0]
+    rec = TraceRecorder([])
+    rec.frame(0, reset.observation)
+    rec.step(reset.observation)
+    still = np.zeros(7, np.float32)
+    chunks = [np.stack([MOVE] * 4)] * 3 + [np.stack([still] * 4)] * 8
+    started = None
+    for chunk in chunks:
+        step = (await group.action_step([chunk]))[0]
+        assert len(step.step_observations) == len(step.executed_actions)
+        assert not any(k.endswith("_image") for k in step.step_observations[-1])
+        np.testing.assert_array_equal(step.step_observations[-1]["robot0_eef_pos"], step.observation["robot0_eef_pos"])
+        for obs in step.step_observations:
+            rec.step(obs)
+        rec.frame(step.episode_step, step.observation, step.executed_actions)
+        if step.harness_intervention and started is None:
+            started = step.episode_step - step.recovery_actions
+        if step.done:
+            break
+    await group.close()
+    trace = rec.finish()
+    eef = trace.step_obs["robot0_eef_pos"]
+    assert trace.steps == len(trace.actions) + 1 and np.all(np.linalg.norm(np.diff(eef[:12], axis=0), axis=1) > 1e-4)
+    assert started is not None, "the runtime's stalled_progress critic never fired"
+    fired = first_fire(trace, PREDICATES["stalled_progress"].fn, {"horizon": 12.0, "min_motion": 0.01})
+    assert fired == started, (fired, started)

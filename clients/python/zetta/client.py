@@ -94,6 +94,8 @@ class StepResult:
     recovery_actions: int = 0
     #: With a harness, on the result that ended the episode: the episode's harness report.
     harness_report: "HarnessReport | None" = None
+    #: With ``reset(record_steps=True)``: the observation after each executed action, without camera images.
+    step_observations: list[dict[str, np.ndarray]] = field(default_factory=list)
 
     @property
     def done(self) -> bool:
@@ -240,6 +242,7 @@ def _step_result(m: types_pb2.StepResult) -> StepResult:
         harness_intervention=m.harness_intervention,
         recovery_actions=m.recovery_actions,
         harness_report=_harness_report(m.harness_report) if m.HasField("harness_report") else None,
+        step_observations=[decode_observation(o) for o in m.step_observations],
     )
 
 
@@ -262,9 +265,11 @@ def _summary(m: types_pb2.EpisodeSummary) -> EpisodeSummary:
 
 
 def _reset_spec(task: str = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
-                record_video: bool = False, harness: str = "", harness_dir: str = "") -> types_pb2.ResetSpec:
+                record_video: bool = False, harness: str = "", harness_dir: str = "",
+                record_steps: bool = False) -> types_pb2.ResetSpec:
     return types_pb2.ResetSpec(task=str(task), seed=seed, init_state_index=init_state_index, instruction=instruction,
-                               record_video=record_video, harness=harness, harness_dir=harness_dir)
+                               record_video=record_video, harness=harness, harness_dir=harness_dir,
+                               record_steps=record_steps)
 
 
 def _policy_spec(model: str = "", instruction: str = "", execute_steps: int = 0, timeout_ms: int = 0) -> types_pb2.PolicySpec:
@@ -385,16 +390,20 @@ class SessionGroup:
         record_video: bool = False,
         harness: str = "",
         harness_dir: str = "",
+        record_steps: bool = False,
     ) -> list[ResetResult]:
         """Start episodes; ``seed`` and ``init_state_index`` may be one value or one per session.
 
         ``record_video`` has each env worker write the episode as an MP4 (``ResetResult.video_path``).
         ``harness`` ("NAME@VERSION" from the critic registry) or ``harness_dir`` (a package directory
-        on the env worker) runs a harness over the episode (docs/harness.md).
+        on the env worker) runs a harness over the episode (docs/harness.md). ``record_steps``
+        returns every step's observation with each step (``StepResult.step_observations``), for
+        traces that replay critics as the runtime runs them.
         """
         seeds = list(seed) if isinstance(seed, Sequence) else [seed] * len(self)
         inits = list(init_state_index) if isinstance(init_state_index, Sequence) else [init_state_index] * len(self)
-        specs = [_reset_spec(str(task), s, i, instruction, record_video, harness, harness_dir) for s, i in zip(seeds, inits)]
+        specs = [_reset_spec(str(task), s, i, instruction, record_video, harness, harness_dir, record_steps)
+                 for s, i in zip(seeds, inits)]
         resp = await self.gateway.call("Reset", gateway_pb2.ResetRequest(session_ids=self.ids, specs=specs))
         return [_reset_result(r) for r in resp.results]
 
@@ -494,9 +503,12 @@ class Session:
         self.session_id = session_id
 
     async def reset(self, task: str | int = "", seed: int = 0, init_state_index: int = 0, instruction: str = "",
-                    record_video: bool = False, harness: str = "", harness_dir: str = "") -> ResetResult:
-        """Start an episode (with a harness when ``harness`` or ``harness_dir`` is given)."""
-        spec = _reset_spec(str(task), seed, init_state_index, instruction, record_video, harness, harness_dir)
+                    record_video: bool = False, harness: str = "", harness_dir: str = "",
+                    record_steps: bool = False) -> ResetResult:
+        """Start an episode (with a harness when ``harness`` or ``harness_dir`` is given;
+        ``record_steps`` as :meth:`SessionGroup.reset`)."""
+        spec = _reset_spec(str(task), seed, init_state_index, instruction, record_video, harness, harness_dir,
+                           record_steps)
         return _reset_result(await self.gateway._batcher.submit("Reset", self.session_id, spec))
 
     async def policy_step(self, model: str = "", instruction: str = "", execute_steps: int = 0,

@@ -1,0 +1,107 @@
+"""A critic replay over a trace that recorded every step sees the frames the runtime's critics saw:
+one per env step, so a horizon of n frames spans n steps as at runtime (not n policy calls)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.evolver.replay import first_fire, frames, resume_frame
+from services.evolver.trace import Trace, TraceRecorder
+from services.harness.runtime.library import PREDICATES
+
+EVERY = 4
+STOP = 40
+STEPS = 160
+
+
+def _obs(t: int) -> dict[str, np.ndarray]:
+    """The hand moves 1 cm per step until step STOP, then holds still."""
+    x = 0.01 * min(t, STOP)
+    return {"robot0_eef_pos": np.array([x, 0.0, 0.2], np.float32),
+            "robot0_eef_quat": np.array([1, 0, 0, 0], np.float32),
+            "robot0_gripper_qpos": np.array([0.04, -0.04], np.float32),
+            "milestones": np.zeros(2, np.float32),
+            "agentview_image": np.zeros((4, 4, 3), np.uint8)}
+
+
+def record(every_step: bool) -> Trace:
+    rec = TraceRecorder(["reached(a)", "grasped(a)"])
+    rec.frame(0, _obs(0))
+    if every_step:
+        rec.step(_obs(0))
+    for t in range(EVERY, STEPS + 1, EVERY):
+        if every_step:
+            for s in range(t - EVERY + 1, t + 1):
+                rec.step(_obs(s))
+        rec.frame(t, _obs(t), np.zeros((EVERY, 7), np.float32))
+    return rec.finish()
+
+
+def test_a_trace_that_recorded_every_step_keeps_them_without_images() -> None:
+    tr = record(every_step=True)
+    assert tr.steps == STEPS + 1 and tr.frames == STEPS // EVERY + 1
+    assert "agentview_image" not in tr.step_obs
+    back = Trace.from_bytes(tr.to_bytes())
+    np.testing.assert_array_equal(back.step_obs["robot0_eef_pos"], tr.step_obs["robot0_eef_pos"])
+    fs = frames(back)
+    assert [f.step for f in fs] == list(range(STEPS + 1)) and fs[0].action is None and fs[5].action is not None
+    assert not record(every_step=False).step_obs
+
+
+def test_a_horizon_counts_env_steps_on_a_trace_of_every_step() -> None:
+    """stalled_progress with horizon 20 fires 20 steps after the hand stopped, as the runtime's
+    critic does; over the call-rate frames alone it would take 20 policy calls (80 steps)."""
+    fn = PREDICATES["stalled_progress"].fn
+    params = {"horizon": 20.0, "min_motion": 0.02}
+    fired = first_fire(record(every_step=True), fn, params)
+    assert fired is not None and STOP + 18 <= fired <= STOP + 21
+    coarse = first_fire(record(every_step=False), fn, params)
+    assert coarse is not None and coarse >= STOP + 18 * EVERY
+
+
+def test_a_horizon_past_the_default_window_still_fires() -> None:
+    """The replay widens its window past an integer parameter, as the runtime's window is."""
+    fired = first_fire(record(every_step=True), PREDICATES["stalled_progress"].fn, {"horizon": 100.0, "min_motion": 0.02})
+    assert fired is not None and fired >= STOP + 98
+
+
+def test_replay_from_a_resume_frame_starts_at_its_env_step() -> None:
+    tr = record(every_step=True)
+    tr.interventions = [{"end_step": 70}]
+    start = resume_frame(tr, 150)
+    assert tr.frame_step[start] == 72
+    fired = first_fire(tr, PREDICATES["stalled_progress"].fn, {"horizon": 20.0, "min_motion": 0.02}, start=start)
+    assert fired is not None and fired >= 72
+
+
+def test_steps_that_do_not_match_the_actions_are_refused() -> None:
+    rec = TraceRecorder([])
+    rec.frame(0, _obs(0))
+    rec.step(_obs(0))
+    rec.frame(4, _obs(4), np.zeros((4, 7), np.float32))
+    with pytest.raises(ValueError, match="one per action"):
+        rec.finish()
+
+
+LATE = '''
+from services.harness.runtime.api import Proposal
+
+
+def critic_late(window, params):
+    if window.now.step >= int(params["at"]) and len(window.frames) > int(params["at"]) // 2:
+        return Proposal("c_late.late", "late", "hold", {"frames": float(len(window.frames))})
+    return None
+'''
+
+
+def test_a_code_critic_replays_at_the_runtimes_cadence_in_its_sandbox() -> None:
+    """A package's code critic runs every ZETTA_CODE_CRITIC_EVERY (4) steps at runtime, over a window
+    of every step; so it does in the replay: first due at step 44 for a critic that holds from 41."""
+    from services.evolver.replay import SandboxedCritic
+
+    with SandboxedCritic("c_late", LATE, {"at": 41}) as critic:
+        assert critic.every == 4
+        assert first_fire(record(every_step=True), critic, {}) == 44
+        # Over call-rate frames alone its window holds 21 frames only at step 80.
+        assert first_fire(record(every_step=False), critic, {}) == 80
