@@ -127,8 +127,10 @@ async def test_a_request_is_held_at_most_half_its_timeout(policy_worker) -> None
         await asyncio.sleep(0.02)
         hurried = asyncio.ensure_future(client.infer("hurried", MODEL, OBS, "put it in", 200))  # held <= 100 ms
         await asyncio.wait_for(asyncio.gather(patient, hurried), 5)
-        # Both left when the hurried one had to; in a call per budget (test_a_too_short_budget_...).
-        assert time.monotonic() - start < 1.0 and batches.sizes == [1, 1]
+        # Both left when the hurried one had to, not after the patient one's 2.5 s. They go in a call
+        # per budget (test_a_too_short_budget_...), which the policy worker may run as one batch
+        # when both arrive together (on a loaded machine they do).
+        assert time.monotonic() - start < 1.0 and sum(batches.sizes) == 2 and batches.sizes in ([1, 1], [2])
 
 
 async def test_no_hold_when_few_slots_are_busy_or_holding_is_off(policy_worker) -> None:
