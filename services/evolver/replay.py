@@ -37,37 +37,29 @@ WINDOW = 64
 def frames(trace: Trace) -> list[Frame]:
     """The trace as the runtime's Frames: one per env step when it recorded every step."""
     if trace.step_obs:
-        return _step_frames(trace)
-    reached = trace.mu_reached
+        return _frames(trace.step_obs, list(range(trace.steps)), [None, *trace.actions], trace.milestone_names)
     last_action: dict[int, np.ndarray] = {}
     for i, k in enumerate(trace.action_frame):
         last_action[int(k)] = trace.actions[i]
-    names = trace.milestone_names
-    out: list[Frame] = []
-    perception: Perception | None = None
-    for k in range(trace.frames):
-        obs = {name: v[k] for name, v in trace.obs.items()}
-        if perception is None:
-            perception = Perception(episode_seed(obs, ""))
-        mu = frozenset(n for n, r in zip(names, reached[k]) if r)
-        out.append(Frame(step=int(trace.frame_step[k]), obs=signals.visible(obs), action=last_action.get(k),
-                         milestones=mu, perceive=perception.sensor(obs)))
-    return out
+    return _frames(trace.obs, [int(s) for s in trace.frame_step], [last_action.get(k) for k in range(trace.frames)],
+                   trace.milestone_names)
 
 
-def _step_frames(trace: Trace) -> list[Frame]:
-    names = trace.milestone_names
-    mu = trace.step_obs.get("milestones")
-    reached = (np.maximum.accumulate(mu[:, : len(names)] > 0.5, axis=0) if mu is not None
-               else np.zeros((trace.steps, len(names)), dtype=bool))
+def _frames(series: Mapping[str, np.ndarray], steps: list[int], actions: list[np.ndarray | None],
+            names: list[str]) -> list[Frame]:
+    """Frames over ``series`` ([K, ...] per tensor) at env ``steps``, each with the action that led to
+    it and the milestones observed up to it."""
+    mu = series.get("milestones")
+    reached = (np.maximum.accumulate(mu[:, : len(names)] > 0.5, axis=0) if mu is not None and len(steps)
+               else np.zeros((len(steps), len(names)), dtype=bool))
     out: list[Frame] = []
     perception: Perception | None = None
-    for t in range(trace.steps):
-        obs = {name: v[t] for name, v in trace.step_obs.items()}
+    for k, step in enumerate(steps):
+        obs = {name: v[k] for name, v in series.items()}
         if perception is None:
             perception = Perception(episode_seed(obs, ""))
-        out.append(Frame(step=t, obs=signals.visible(obs), action=trace.actions[t - 1] if t else None,
-                         milestones=frozenset(n for n, r in zip(names, reached[t]) if r),
+        out.append(Frame(step=step, obs=signals.visible(obs), action=actions[k],
+                         milestones=frozenset(n for n, r in zip(names, reached[k]) if r),
                          perceive=perception.sensor(obs)))
     return out
 
