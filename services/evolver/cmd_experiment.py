@@ -1,15 +1,15 @@
 """`zetta evolve experiment`: the full experiment in one command: evolve every task of several suites,
-then zero-shot transfer of every admitted harness to a suite it never saw, with one results file.
+then zero-shot transfer of every admitted harness to suites it never saw, with one results file.
 
   zetta evolve experiment --suites libero_goal_task,libero_goal_swap --tasks 0-9 --dev-seeds 20 \\
-      --heldout-seeds 10 --test-seeds 20 --rounds 2 --transfer-suite libero_goal --transfer-seeds 20 \\
-      --out runs/experiment
+      --heldout-seeds 10 --test-seeds 20 --rounds 2 --transfer-suites libero_goal_lan,libero_goal_object \\
+      --transfer-seeds 20 --out runs/experiment
 
 One local stack (or --gateway/--registry) serves everything, the frozen policy and the do-nothing
 control. Each suite has its own store (<out>/<suite>, the usual `zetta evolve` store and report);
-the transfer arm has one too (<out>/transfer-<suite>): the harness admitted for task t of an
+each transfer suite has one too (<out>/transfer-<suite>): the harness admitted for task t of an
 evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
-the transfer suite. <out>/results.json is the machine-readable result (services/evolver/results.py:
+every transfer suite (adding a transfer suite to a finished run's command runs only that arm). <out>/results.json is the machine-readable result (services/evolver/results.py:
 commit, policy checkpoint hash, budgets, splits, test arms with Wilson intervals, control, recoveries'
 share, the goals and their gaps, the history per task and round, the internal-version curves,
 rollouts by purpose, wall time per phase); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
@@ -82,7 +82,8 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--tasks", default="0-9", help="task indices per suite, e.g. 0-9 or 1,6,9")
     add_search_args(p)
     p.set_defaults(rounds=2)
-    p.add_argument("--transfer-suite", default="libero_goal", help="suite for zero-shot transfer ('' for none)")
+    p.add_argument("--transfer-suites", "--transfer-suite", dest="transfer_suites", default="libero_goal",
+                   help="suites for zero-shot transfer, comma-separated ('' for none)")
     p.add_argument("--transfer-seeds", type=int, default=20, help="test seeds per transfer task")
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
@@ -96,6 +97,10 @@ def main(argv: Sequence[str]) -> int:
     add_progress_option(p)
     a = p.parse_args(list(argv))
     suites = [s.strip() for s in a.suites.split(",") if s.strip()]
+    transfer_suites = [s.strip() for s in a.transfer_suites.split(",") if s.strip()]
+    if overlap := sorted(set(suites) & set(transfer_suites)):
+        raise SystemExit(f"zetta evolve experiment: {', '.join(overlap)} is both evolved on and a transfer suite; "
+                         "transfer measures suites the harness never saw")
     tasks = task_list(a.tasks)
     bars = PhaseBars()
     meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": git_source(ROOT),
@@ -126,14 +131,14 @@ def main(argv: Sequence[str]) -> int:
                                  _walls(store))
             finally:
                 registry.close()
-            if a.transfer_suite:
-                _transfer(a.out, suites, a.transfer_suite, a.transfer_seeds, run, ep.registry, bars)
+            for transfer_suite in transfer_suites:
+                _transfer(a.out, suites, transfer_suite, a.transfer_seeds, run, ep.registry, bars)
     except KeyboardInterrupt:
         bars.close()
         print(f"\nstopped; finished rollouts are in {a.out}: run the same command to resume", file=sys.stderr)
         return 130
     bars.close()
-    data = results.collect(a.out, suites, a.transfer_suite, {**meta, "results_path": str(a.out / "results.json")})
+    data = results.collect(a.out, suites, transfer_suites, {**meta, "results_path": str(a.out / "results.json")})
     path = results.write(a.out / "results.json", data)
     (a.out / "summary.md").write_text("# Evolution experiment\n\n" + results.render(data))
     print(f"results: {path}\nsummary: {a.out / 'summary.md'}\n"

@@ -73,8 +73,9 @@ def _walls(store: RolloutStore) -> float:
     return sum(float(e["wall_s"]) for e in store.events("wall"))
 
 
-def collect(out: Path, suites: Sequence[str], transfer_suite: str, meta: Mapping[str, Any]) -> dict[str, Any]:
-    """The results of an experiment directory, from what its stores recorded."""
+def collect(out: Path, suites: Sequence[str], transfer_suites: Sequence[str], meta: Mapping[str, Any]) -> dict[str, Any]:
+    """The results of an experiment directory, from what its stores recorded (the transfer rows of
+    every transfer suite in one list; their wall times summed)."""
     data: dict[str, Any] = {"schema": SCHEMA, **meta, "suites": {}, "transfer": [], "wall_s": {},
                             "rollouts_by_purpose": {}}
     for suite in suites:
@@ -83,12 +84,14 @@ def collect(out: Path, suites: Sequence[str], transfer_suite: str, meta: Mapping
         data["wall_s"][suite] = _walls(store)
         data["rollouts_by_purpose"][suite] = history.rollout_counts(store)
         store.close()
-    tdir = out / f"transfer-{transfer_suite}"
-    if transfer_suite and (tdir / "index.sqlite").exists():
+    for transfer_suite in transfer_suites:
+        tdir = out / f"transfer-{transfer_suite}"
+        if not (tdir / "index.sqlite").exists():
+            continue
         tstore = RolloutStore(tdir)
-        data["transfer"] = [{"suite": f["suite"], "task": f["task"], "harness": f["harness"], "source": f["source"],
-                             "arms": f["arms"]} for f in tstore.events("transfer_source") if "arms" in f]
-        data["wall_s"]["transfer"] = _walls(tstore)
+        data["transfer"] += [{"suite": f["suite"], "task": f["task"], "harness": f["harness"], "source": f["source"],
+                              "arms": f["arms"]} for f in tstore.events("transfer_source") if "arms" in f]
+        data["wall_s"]["transfer"] = data["wall_s"].get("transfer", 0.0) + _walls(tstore)
         data["rollouts_by_purpose"][f"transfer-{transfer_suite}"] = history.rollout_counts(tstore)
         tstore.close()
     data["goals"] = goals(data)

@@ -46,18 +46,24 @@ def test_results_file_holds_provenance_splits_arms_and_means_and_renders_the_tab
                                             "control": _arm(c, 10, seeds)}}, ident=f"{suite}/{task}")
         store.record("wall", {"command": "experiment", "wall_s": 100.0})
         store.record("wall", {"command": "experiment", "wall_s": 20.0})
-    transfer = RolloutStore(tmp_path / "transfer-libero_goal")
-    transfer.record("transfer_source", {"suite": "libero_goal", "task": "9", "harness": "e-9@1", "source":
-                                        "libero_goal_task/9", "arms": {"bare": _arm(3, 10, seeds),
-                                                                       "final": _arm(5, 10, seeds),
-                                                                       "control": _arm(0, 10, seeds)}})
+    for transfer_suite, bare, final, wall in (("libero_goal", 3, 5, 30.0), ("libero_goal_lan", 2, 7, 40.0)):
+        transfer = RolloutStore(tmp_path / f"transfer-{transfer_suite}")
+        transfer.record("transfer_source", {"suite": transfer_suite, "task": "9", "harness": "e-9@1",
+                                            "source": "libero_goal_task/9", "arms": {"bare": _arm(bare, 10, seeds),
+                                                                                     "final": _arm(final, 10, seeds),
+                                                                                     "control": _arm(0, 10, seeds)}})
+        transfer.record("wall", {"command": "experiment transfer", "wall_s": wall})
     meta = {"command": "zetta evolve experiment --tasks 6,9", "source": {"commit": "abc123def4567890", "dirty": False},
             "policy": {"model": "zetta-vla-state", "checkpoint_sha256": "f" * 64}, "control_model": "do-nothing"}
-    data = results.collect(tmp_path, ["libero_goal_task", "libero_goal_swap"], "libero_goal", meta)
+    data = results.collect(tmp_path, ["libero_goal_task", "libero_goal_swap"], ["libero_goal", "libero_goal_lan"],
+                           meta)
     task = data["suites"]["libero_goal_task"]
     assert [t["task"] for t in task["tasks"]] == ["6", "9"] and task["mean"]["final"] == pytest.approx(0.5)
     assert task["tasks"][1]["split"]["test"] == [1] and data["wall_s"]["libero_goal_task"] == 120.0
-    assert data["transfer"][0]["source"] == "libero_goal_task/9"
+    assert [(t["suite"], t["source"]) for t in data["transfer"]] == [("libero_goal", "libero_goal_task/9"),
+                                                                     ("libero_goal_lan", "libero_goal_task/9")]
+    assert data["wall_s"]["transfer"] == 70.0 and set(data["rollouts_by_purpose"]) >= {"transfer-libero_goal",
+                                                                                       "transfer-libero_goal_lan"}
     path = results.write(tmp_path / "results.json", data)
     text = results.render(json.loads(path.read_text()))
     assert "commit `abc123def456`" in text and "checkpoint sha256 `ffffffffffffffff`" in text
@@ -65,6 +71,9 @@ def test_results_file_holds_provenance_splits_arms_and_means_and_renders_the_tab
         in text
     assert "| **mean** | 0.0% | 50.0% | +50.0% | 0.0% |" in text
     assert "| libero_goal | 9 | e-9@1 (libero_goal_task/9) | 3/10 = 30%" in text
+    assert "| libero_goal_lan | 9 | e-9@1 (libero_goal_task/9) | 2/10 = 20%" in text
+    gain = next(g for g in data["goals"] if g["goal"].startswith("zero-shot transfer"))
+    assert gain["value"] == pytest.approx(0.35)  # both transfer suites' rows: (5 + 7 - 3 - 2) / 20
 
 
 def test_the_published_page_is_generated_from_the_results_file() -> None:
@@ -75,3 +84,12 @@ def test_the_published_page_is_generated_from_the_results_file() -> None:
     assert page.startswith("# Evolution: bare policy, evolved harness, do-nothing control (generated)")
     assert "measured by: `zetta evolve experiment --tasks 6`" in page and "commit: `c0ffee`" in page
     assert "policy `m`" in page
+
+
+def test_a_suite_evolved_on_is_no_transfer_suite() -> None:
+    """Transfer measures suites the harness never saw: naming an evolved suite among them stops the
+    command before any stack starts."""
+    from services.evolver.cmd_experiment import main
+
+    with pytest.raises(SystemExit, match="libero_goal_swap is both evolved on and a transfer suite"):
+        main(["--suites", "libero_goal_swap", "--transfer-suites", "libero_goal_lan,libero_goal_swap"])

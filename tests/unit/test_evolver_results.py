@@ -92,7 +92,7 @@ def experiment(tmp_path: Path, transfer: bool = True) -> dict[str, Any]:
         tstore.close()
     meta = {"command": "zetta evolve experiment", "source": {"commit": "abc"}, "policy": {"model": "m"},
             "budgets": {"rounds": 2, "dev_seeds": 4, "heldout_seeds": 3, "test_seeds": 2, "max_depth": 3}}
-    data = results.collect(tmp_path, [SUITE], "libero_goal" if transfer else "", meta)
+    data = results.collect(tmp_path, [SUITE], ["libero_goal"] if transfer else [], meta)
     assert data["schema"] == 2
     return dict(json.loads(results.write(tmp_path / "results.json", data).read_text()))
 
