@@ -69,6 +69,10 @@ class RunConfig:
     #: latency SLO: a generous budget keeps a loaded machine from turning slow calls into invalid
     #: attempts; it stays under the gateway's own step deadline (ZETTA_STEP_TIMEOUT_MS, 30 s).
     policy_timeout_ms: int = 25_000
+    #: How long a rollout waits for an env slot while the pool is full or has no live worker. A
+    #: loaded machine can miss heartbeats long enough for its workers to be marked LOST until the
+    #: next heartbeat lands; a run of hours waits that out (an experiment died after 30 s of it).
+    open_timeout_s: float = 600.0
 
 
 def _reset_spec(key: EpisodeKey, record_video: bool) -> types_pb2.ResetSpec:
@@ -177,16 +181,25 @@ class Runner:
                 await _close_quietly(session)
 
     async def _open(self, gw: Gateway) -> SessionGroup:
-        for _ in range(60):
+        deadline = time.monotonic() + self.cfg.open_timeout_s
+        tries = 0
+        while True:
+            tries += 1
             try:
                 return await gw.create_sessions("libero", n=1, env_config=self.env_config)
             except ZettaError as exc:
                 # Full pool: wait as told. A worker that just died is still routed to until its
-                # heartbeats time out: wait for the registry to notice.
+                # heartbeats time out, and a live one missed beats on a loaded machine: wait for
+                # the registry to catch up.
                 if exc.code not in (grpc.StatusCode.RESOURCE_EXHAUSTED, grpc.StatusCode.UNAVAILABLE):
                     raise
-                await asyncio.sleep((exc.retry_after_ms or 500) / 1000)
-        raise InfrastructureError("no env slot could be opened in 60 tries")
+                wait = (exc.retry_after_ms or 500) / 1000
+                if time.monotonic() + wait > deadline:
+                    raise InfrastructureError(
+                        f"no env slot could be opened in {self.cfg.open_timeout_s:.0f} s ({tries} tries); the "
+                        f"gateway last said {exc.code.name}: {exc}. Check the env workers' logs, then run the "
+                        "same command again: finished rollouts are kept") from None
+                await asyncio.sleep(wait)
 
 
 async def _close_quietly(session: SessionGroup) -> None:
