@@ -9,7 +9,8 @@ One local stack (or --gateway/--registry) serves everything, the frozen policy a
 control. Each suite has its own store (<out>/<suite>, the usual `zetta evolve` store and report);
 each transfer suite has one too (<out>/transfer-<suite>): the harness admitted for task t of an
 evolved suite runs, beside the bare policy and the do-nothing control, on test seeds of task t of
-every transfer suite (adding a transfer suite to a finished run's command runs only that arm). <out>/results.json is the machine-readable result (services/evolver/results.py:
+every transfer suite (adding a transfer suite to a finished run's command runs only that arm).
+<out>/results.json is the machine-readable result (services/evolver/results.py:
 commit, policy checkpoint hash, budgets, splits, test arms with Wilson intervals, control, recoveries'
 share, the goals and their gaps, the history per task and round, the internal-version curves,
 rollouts by purpose, wall time per phase); <out>/summary.md is rendered from it; `python scripts/gen_results.py evolution
@@ -82,7 +83,8 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--tasks", default="0-9", help="task indices per suite, e.g. 0-9 or 1,6,9")
     add_search_args(p)
     p.set_defaults(rounds=2)
-    p.add_argument("--transfer-suites", "--transfer-suite", dest="transfer_suites", default="libero_goal",
+    p.add_argument("--transfer-suites", "--transfer-suite", dest="transfer_suites",
+                   default="libero_goal_lan,libero_goal_object",
                    help="suites for zero-shot transfer, comma-separated ('' for none)")
     p.add_argument("--transfer-seeds", type=int, default=20, help="test seeds per transfer task")
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
