@@ -59,20 +59,29 @@ def _walls(store: RolloutStore) -> float:
     return sum(float(e["wall_s"]) for e in store.events("wall"))
 
 
-def _transfer(out: Path, suites: Sequence[str], transfer_suite: str, seeds: int, run: RunConfig, registry: str,
-              bars: PhaseBars) -> None:
-    """Every suite's last admitted harness per task, on the transfer suite's task of the same index."""
-    tstore = RolloutStore(out / f"transfer-{transfer_suite}")
-    t0 = time.time()
+def _admitted(out: Path, suites: Sequence[str], registry: str) -> list[tuple[str, str, str]]:
+    """(suite, task, reference) of every suite's last admitted harness per task, published to
+    ``registry`` once for all transfer suites."""
+    rows = []
     for suite in suites:
         store = RolloutStore(out / suite)
         latest = {a["task"]: a["ref"] for a in store.events("admitted") if a["suite"] == suite}
-        for task, ref in sorted(latest.items()):
-            published = publish_dir(registry, store.root / "harness" / ref)
-            for rec in evaluate_transfer(tstore, run, transfer_suite, [task], published, seeds, bars):
-                tstore.record("transfer_source", {**rec, "source": f"{suite}/{task}"},
-                              ident=f"{transfer_suite}/{task}/{published}")
+        rows += [(suite, task, publish_dir(registry, store.root / "harness" / ref)) for task, ref in sorted(latest.items())]
+        store.close()
+    return rows
+
+
+def _transfer(out: Path, harnesses: Sequence[tuple[str, str, str]], transfer_suite: str, seeds: int, run: RunConfig,
+              bars: PhaseBars) -> None:
+    """Each admitted harness (:func:`_admitted`) on the transfer suite's task of the same index."""
+    tstore = RolloutStore(out / f"transfer-{transfer_suite}")
+    t0 = time.time()
+    for suite, task, published in harnesses:
+        for rec in evaluate_transfer(tstore, run, transfer_suite, [task], published, seeds, bars):
+            tstore.record("transfer_source", {**rec, "source": f"{suite}/{task}"},
+                          ident=f"{transfer_suite}/{task}/{published}")
     tstore.record("wall", {"command": "experiment transfer", "wall_s": time.time() - t0})
+    tstore.close()
 
 
 def main(argv: Sequence[str]) -> int:
@@ -133,8 +142,9 @@ def main(argv: Sequence[str]) -> int:
                                  _walls(store))
             finally:
                 registry.close()
+            harnesses = _admitted(a.out, suites, ep.registry) if transfer_suites else []
             for transfer_suite in transfer_suites:
-                _transfer(a.out, suites, transfer_suite, a.transfer_seeds, run, ep.registry, bars)
+                _transfer(a.out, harnesses, transfer_suite, a.transfer_seeds, run, bars)
     except KeyboardInterrupt:
         bars.close()
         print(f"\nstopped; finished rollouts are in {a.out}: run the same command to resume", file=sys.stderr)
