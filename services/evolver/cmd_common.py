@@ -55,6 +55,9 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="internal versions stacked per cluster until one solves every cluster seed")
     p.add_argument("--regression-min", type=float, default=1.0,
                    help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
+    p.add_argument("--nominal-seeds", type=int, default=EvolveConfig.nominal_seeds,
+                   help="bare-policy episodes per task on a LIBERO-PRO variant's original suite; a critic that "
+                        "fires on their successes counts a false positive (0: none)")
     p.add_argument("--eod-epsilon", type=float, default=EODParams().epsilon)
     p.add_argument("--cluster-radius", type=float, default=ClusterParams().radius)
     p.add_argument("--cluster-max-size", type=int, default=ClusterParams().max_size,
@@ -68,7 +71,7 @@ def evolve_config(a: argparse.Namespace, suite: str, tasks: tuple[str, ...], nam
                         max_clusters=a.max_clusters, eod=EODParams(epsilon=a.eod_epsilon),
                         cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
                         search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
-                        llm=llm_from_env(), max_depth=a.max_depth)
+                        llm=llm_from_env(), max_depth=a.max_depth, nominal_seeds=a.nominal_seeds)
 
 
 def tasks_of(text: str) -> tuple[str, ...]:

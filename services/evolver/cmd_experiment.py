@@ -120,7 +120,8 @@ def main(argv: Sequence[str]) -> int:
                         "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
                         "execute_steps": a.execute_steps, "max_steps": a.max_steps,
                         **{k: getattr(a, k) for k in ("max_clusters", "max_candidates", "max_depth", "regression_min",
-                                                      "eod_epsilon", "cluster_radius", "cluster_max_size")}}}
+                                                      "eod_epsilon", "cluster_radius", "cluster_max_size",
+                                                      "nominal_seeds")}}}
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
                                           a.out / "stack", False) as ep:

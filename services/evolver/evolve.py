@@ -28,6 +28,7 @@ from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.eod import EOD, EODParams, t_eod
 from services.evolver.gate import GateParams, count, judge, regression_gate
 from services.evolver.llm import LLMConfig, LLMError, propose
+from services.evolver.nominal import NominalPlan, summary
 from services.evolver.profile import SuccessIndex, build_profile
 from services.evolver.registry_client import RegistryClient
 from services.evolver.repair import NOT_EVIDENCE, Candidate, ReplayCase, SearchParams, library, search
@@ -65,6 +66,9 @@ class EvolveConfig:
     #: the cluster than any before it earns one more, up to twice this (a cluster being solved seed
     #: by seed is worth finishing; one that stalls is not).
     max_depth: int = 3
+    #: Bare-policy episodes per task on the original suite of a LIBERO-PRO variant whose successes
+    #: count as false positives for a critic that fires on them (services/evolver/nominal.py); 0: none.
+    nominal_seeds: int = 2
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,8 @@ class Evolution:
         self.run_cfg = run
         self.registry = registry
         self.progress = progress
+        self.nominal_plan = NominalPlan.for_evolution(cfg.suite, cfg.tasks, cfg.nominal_seeds)
+        self._nominal: list[Trace] | None = None
         self.state = {t: TaskState(HarnessDraft(name=_safe(f"{cfg.name}-{t}"), tasks=(t,))) for t in cfg.tasks}
         self._restore()
 
@@ -160,6 +166,7 @@ class Evolution:
         for task in self.cfg.tasks:
             self.store.assign_splits(self.cfg.suite, task, self.cfg.dev_seeds, self.cfg.heldout_seeds,
                                      self.cfg.test_seeds, trained)
+        self.nominal_successes()
         for round_ in range(1, self.cfg.rounds + 1):
             for task in self.cfg.tasks:
                 if any(e["round"] == round_ and e["task"] == task and e["suite"] == self.cfg.suite
@@ -168,6 +175,20 @@ class Evolution:
                 self.round(task, round_)
         for task in self.cfg.tasks:
             self.final_eval(task)
+
+    def nominal_successes(self) -> list[Trace]:
+        """Traces of the policy's successful nominal episodes (run once, then read from the store):
+        the false-positive reference every critic search of this evolution adds to I_succ."""
+        if self._nominal is None:
+            keys = self.nominal_plan.keys(self.store)
+            rollouts: list[Rollout] = []
+            if keys:
+                runner = Runner(self.store, self.run_cfg, env_config(self.nominal_plan.suite, self.run_cfg))
+                rollouts = self._rollouts(keys, f"nominal {self.nominal_plan.suite}", 0, runner)
+                self.store.record("nominal", {"for_suite": self.cfg.suite, **summary(self.nominal_plan, rollouts)},
+                                  ident=self.cfg.suite)
+            self._nominal = [self.store.trace(r) for r in rollouts if r.success]
+        return self._nominal
 
     def round(self, task: str, round_: int) -> None:
         """Loop 1 on dev seeds with the current harness, then Loop 2 and Loop 3 on its failures."""
@@ -187,7 +208,7 @@ class Evolution:
             eods = [t_eod(tr, index, self.cfg.eod) for tr in traces]
             budget = max(r.steps for r in rollouts)
             clusters = cluster_failures(prof.failures, traces, eods, index, budget, self.cfg.cluster)
-            succ_traces = [self.store.trace(r) for r in rollouts if r.success]
+            succ_traces = [self.store.trace(r) for r in rollouts if r.success] + self.nominal_successes()
             for cl in clusters[: self.cfg.max_clusters]:
                 idx = [prof.failures.index(f) for f in cl.members]
                 repairs.append(self._repair_cluster(task, round_, cur, cl, [traces[i] for i in idx],

@@ -17,7 +17,7 @@ from typing import Any
 from services.evolver.store import RolloutStore
 
 #: Rollout purposes in the order the loops use them (store keys; others follow, sorted).
-PURPOSES = ("profile", "validate", "regress", "control", "heldout", "test", "control-test")
+PURPOSES = ("nominal", "profile", "validate", "regress", "control", "heldout", "test", "control-test")
 #: A refusal's kind, by the words the gate's reasons start with (services/evolver/gate.py).
 _REFUSALS = (("historical regression", "regression"), ("do-nothing", "control"), ("held-out", "held-out"))
 

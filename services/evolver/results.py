@@ -56,7 +56,7 @@ def _task_row(store: RolloutStore, final: Mapping[str, Any]) -> dict[str, Any]:
     split = final.get("split", {})
     return {"task": final["task"], "harness": final["harness"], "arms": final["arms"], "split": split,
             "init_states": {k: [s % INIT_STATES for s in split.get(k, [])] for k in SPLITS},
-            "rollouts": len(store.query(task=final["task"])), "wall_s": final.get("wall_s")}
+            "rollouts": len(store.query(suite=final["suite"], task=final["task"])), "wall_s": final.get("wall_s")}
 
 
 def _suite(store: RolloutStore, suite: str) -> dict[str, Any]:
@@ -66,7 +66,8 @@ def _suite(store: RolloutStore, suite: str) -> dict[str, Any]:
     tasks = [_task_row(store, f) for f in finals]
     return {"tasks": tasks, "mean": {arm: _mean(tasks, arm) for arm in ARMS}, "rollouts": len(store.query()),
             "history": history.round_rows(store, suite), "curves": history.curves(store, suite),
-            "phases_s": history.phase_walls(store, suite)}
+            "phases_s": history.phase_walls(store, suite),
+            "nominal": next((e for e in store.events("nominal") if e.get("for_suite") == suite), None)}
 
 
 def _walls(store: RolloutStore) -> float:
@@ -230,6 +231,11 @@ def _suite_tables(data: Mapping[str, Any]) -> list[str]:
         lines += [f"| **mean** | {m['bare']:.1%} | {m['final']:.1%} | {m['final'] - m['bare']:+.1%} | "
                   f"{m['control']:.1%} | | | |", "",
                   f"Rollouts: {body['rollouts']}; wall time {data.get('wall_s', {}).get(suite, 0.0):.0f} s.", ""]
+        if nominal := body.get("nominal"):
+            lines += [f"False-positive reference: {nominal['successes']} of {nominal['episodes']} bare-policy "
+                      f"episodes on {nominal['suite']} (tasks {_ranges([int(t) for t in nominal['tasks']])}, seeds "
+                      f"{_ranges(nominal['seeds'])}) succeeded; a critic that fires on one counts a false positive "
+                      "as on the task's own successes.", ""]
     return lines
 
 

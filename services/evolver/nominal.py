@@ -1,0 +1,69 @@
+"""The frozen policy's nominal behaviour: its successful bare rollouts on the suite it was made for.
+
+A critic that fires on a policy doing its job is a false positive. The repair search counts false
+positives on the task's own successful rollouts (I_succ), but on a variant the policy never solves
+alone there are none, so a critic that fires on every episode (one that reads the arm's first
+steps as a blocked motion, say) looks free there; carried to a task the policy does solve, it
+interrupts every episode. The nominal set closes that gap: the bare policy on the original suite of
+a LIBERO-PRO variant (libero_goal for libero_goal_task), the same scenes and robot on tasks the
+policy does. Its successes join I_succ wherever the search measures false positives. It is a dev
+set of another suite: no split of the evolved suite, and no transfer suite, is read.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from services.evolver.store import EpisodeKey, Rollout, RolloutStore
+
+#: The rollouts' purpose in the store.
+NOMINAL = "nominal"
+#: LIBERO-PRO's perturbed suites are named <base>_<variant> (services/env_worker/families/libero.py).
+_LIBERO_PRO_SUFFIXES = ("_task", "_swap", "_lan", "_object")
+
+
+def nominal_suite(suite: str) -> str:
+    """The original suite of a LIBERO-PRO variant ("" for any other suite: its own successes are
+    already the policy's nominal behaviour)."""
+    for suffix in _LIBERO_PRO_SUFFIXES:
+        if suite.startswith("libero_") and suite.endswith(suffix):
+            return suite[: -len(suffix)]
+    return ""
+
+
+@dataclass(frozen=True)
+class NominalPlan:
+    """Which nominal episodes to run: ``seeds`` per task of ``suite`` (no plan when either is empty)."""
+
+    suite: str
+    tasks: tuple[str, ...]
+    seeds: int
+
+    @classmethod
+    def for_evolution(cls, suite: str, tasks: Sequence[str], seeds: int) -> "NominalPlan":
+        """The plan for an evolution on ``suite``: the same task indices of its original suite (a
+        LIBERO-PRO variant perturbs each task of it; task names do not carry over)."""
+        return cls(nominal_suite(suite), tuple(t for t in tasks if t.isdigit()), max(0, seeds))
+
+    @property
+    def empty(self) -> bool:
+        return not (self.suite and self.tasks and self.seeds)
+
+    def keys(self, store: RolloutStore) -> list[EpisodeKey]:
+        """The episode keys, after fixing their seeds once as dev seeds of the nominal suite."""
+        if self.empty:
+            return []
+        out = []
+        for task in self.tasks:
+            dev, _ = store.assign_splits(self.suite, task, self.seeds, 0, 0)
+            out += [EpisodeKey(self.suite, task, s, "", NOMINAL) for s in dev[: self.seeds]]
+        return out
+
+
+def summary(plan: NominalPlan, rollouts: Sequence[Rollout]) -> dict[str, object]:
+    """The event a store records about the set (the results page reports it)."""
+    return {"suite": plan.suite, "tasks": list(plan.tasks), "seeds_per_task": plan.seeds,
+            "seeds": sorted({r.seed for r in rollouts}), "episodes": len(rollouts),
+            "successes": sum(1 for r in rollouts if r.success)}
+

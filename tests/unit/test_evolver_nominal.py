@@ -1,0 +1,79 @@
+"""The nominal reference: which suite and seeds it uses, that it never touches a split of the
+evolved suite, that its successes count as false positives in the repair search, and how the
+results page reports it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.evolver import results
+from services.evolver.nominal import NOMINAL, NominalPlan, nominal_suite, summary
+from services.evolver.repair import SearchParams, search
+from services.evolver.store import DEV, HELDOUT, TEST, EpisodeKey, RolloutStore
+from tests.unit.test_evolver_fixtures import make_trace
+from tests.unit.test_evolver_repair import PARENT, drop_cluster
+from tests.unit.test_evolver_results import SUITE, experiment
+from tests.unit.test_evolver_store import outcome
+
+
+@pytest.mark.parametrize("suite, base", [("libero_goal_task", "libero_goal"), ("libero_goal_swap", "libero_goal"),
+                                         ("libero_goal_lan", "libero_goal"), ("libero_spatial_object", "libero_spatial"),
+                                         ("libero_goal", ""), ("robosuite_lift", ""), ("libero_10", "")])
+def test_the_nominal_suite_is_a_variants_original(suite: str, base: str) -> None:
+    assert nominal_suite(suite) == base
+
+
+def test_the_plan_runs_the_same_task_indices_on_dev_seeds_of_the_original_suite(tmp_path: Path) -> None:
+    """Two seeds per task index, dev seeds 1-2 of libero_goal, fixed once; named tasks do not carry
+    over; the evolved suite's splits are untouched; an original suite or 0 seeds plan nothing."""
+    store = RolloutStore(tmp_path)
+    store.assign_splits("libero_goal_task", "8", 10, 10, 20)
+    plan = NominalPlan.for_evolution("libero_goal_task", ("2", "8", "put_the_bowl_on_the_plate"), 2)
+    keys = plan.keys(store)
+    assert [(k.suite, k.task, k.seed, k.harness, k.purpose) for k in keys] == [
+        ("libero_goal", t, s, "", NOMINAL) for t in ("2", "8") for s in (1, 2)]
+    assert plan.keys(store) == keys
+    for task in ("2", "8"):
+        assert (store.seeds("libero_goal", task, DEV), store.seeds("libero_goal", task, HELDOUT),
+                store.seeds("libero_goal", task, TEST)) == ([1, 2], [], [])
+    assert len(store.seeds("libero_goal_task", "8", TEST)) == 20
+    store.add(keys[0], outcome("success", 1))
+    store.add(keys[1], outcome("miss", 2))
+    rows = [store.get(k) for k in keys[:2]]
+    assert summary(plan, [r for r in rows if r]) == {"suite": "libero_goal", "tasks": ["2", "8"], "seeds_per_task": 2,
+                                                     "seeds": [1, 2], "episodes": 2, "successes": 1}
+    assert NominalPlan.for_evolution("libero_goal", ("2",), 2).empty
+    assert NominalPlan.for_evolution("libero_goal_task", ("2",), 0).keys(store) == []
+
+
+def test_a_critic_that_fires_on_nominal_successes_is_not_proposed() -> None:
+    """The drop cluster's best critic is grasp_lost; when the policy's nominal successes show the
+    same signal (an object let go and picked up again on a task it solves), that critic is a false
+    positive above the search's bound and no candidate uses it."""
+    spec, medoid, members, succ = drop_cluster()
+    assert search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3))[0].critic.template == "grasp_lost"
+    nominal = [make_trace("drop", s) for s in range(20, 24)]
+    cands = search(spec, PARENT, medoid, members, succ + nominal, SearchParams(max_candidates=3))
+    assert all(c.critic.template != "grasp_lost" for c in cands)
+    assert all(c.false_positive <= SearchParams().max_false_positive for c in cands)
+
+
+def test_the_results_page_reports_the_reference(tmp_path: Path) -> None:
+    """The reference's rollouts are counted by purpose, kept out of the evolved task's rollout count,
+    and described under the suite's table."""
+    store = RolloutStore(tmp_path / SUITE)
+    plan = NominalPlan.for_evolution(SUITE, ("6",), 2)
+    keys = plan.keys(store)
+    rows = [store.add(k, outcome("success" if k.seed == 1 else "miss", k.seed)) for k in keys]
+    store.record("nominal", {"for_suite": SUITE, **summary(plan, rows)}, ident=SUITE)
+    store.close()
+    data = experiment(tmp_path)
+    assert data["suites"][SUITE]["nominal"]["successes"] == 1
+    assert data["suites"][SUITE]["tasks"][0]["rollouts"] == 3  # task 6's own: the nominal ones are libero_goal's
+    assert data["rollouts_by_purpose"][SUITE]["purposes"][NOMINAL]["rollouts"] == 2
+    text = results.render(data)
+    assert ("False-positive reference: 1 of 2 bare-policy episodes on libero_goal (tasks 6, seeds 1-2) succeeded; "
+            "a critic that fires on one counts a false positive as on the task's own successes.") in text
+    assert EpisodeKey("libero_goal", "6", 1, "", NOMINAL) in keys
