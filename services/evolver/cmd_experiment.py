@@ -36,7 +36,7 @@ from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.rollout import RunConfig
 from services.evolver.stack import endpoints, stop_on_sigterm
-from services.evolver.store import RolloutStore, StoreError
+from services.evolver.store import INIT_STATES, RolloutStore, StoreError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -112,6 +112,10 @@ def main(argv: Sequence[str]) -> int:
     if overlap := sorted(set(suites) & set(transfer_suites)):
         raise SystemExit(f"zetta evolve experiment: {', '.join(overlap)} is both evolved on and a transfer suite; "
                          "transfer measures suites the harness never saw")
+    if a.nominal_seeds + max(a.test_seeds, a.transfer_seeds) > INIT_STATES:
+        raise SystemExit(f"zetta evolve experiment: --nominal-seeds {a.nominal_seeds} + test or transfer seeds "
+                         f"{max(a.test_seeds, a.transfer_seeds)} exceed LIBERO's {INIT_STATES} initial states: a "
+                         "reported episode would share its layout with a nominal one; lower one of them")
     tasks = task_list(a.tasks)
     bars = PhaseBars()
     meta = {"command": "zetta evolve experiment " + " ".join(argv), "source": git_source(ROOT),

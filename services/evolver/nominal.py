@@ -7,7 +7,10 @@ steps as a blocked motion, say) looks free there; carried to a task the policy d
 interrupts every episode. The nominal set closes that gap: the bare policy on the original suite of
 a LIBERO-PRO variant (libero_goal for libero_goal_task), the same scenes and robot on tasks the
 policy does. Its successes join I_succ wherever the search measures false positives. It is a dev
-set of another suite: no split of the evolved suite, and no transfer suite, is read.
+set of another suite on the last initial states (49, 48, ...): the splits that report numbers draw
+theirs from the first ones (test seeds 1-20 of the evolved suite and of every transfer suite, whose
+layouts are the original suite's), so no reported episode shares a layout with a nominal one while
+test or transfer seeds plus nominal seeds fit in 50 (``zetta evolve experiment`` refuses more).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from services.evolver.store import EpisodeKey, Rollout, RolloutStore
+from services.evolver.store import DEV, INIT_STATES, EpisodeKey, Rollout, RolloutStore
 
 #: The rollouts' purpose in the store.
 NOMINAL = "nominal"
@@ -51,14 +54,22 @@ class NominalPlan:
         return not (self.suite and self.tasks and self.seeds)
 
     def keys(self, store: RolloutStore) -> list[EpisodeKey]:
-        """The episode keys, after fixing their seeds once as dev seeds of the nominal suite."""
+        """The episode keys, after fixing their seeds as dev seeds of the nominal suite."""
         if self.empty:
             return []
+        seeds = nominal_seeds(self.seeds)
         out = []
         for task in self.tasks:
-            dev, _ = store.assign_splits(self.suite, task, self.seeds, 0, 0)
-            out += [EpisodeKey(self.suite, task, s, "", NOMINAL) for s in dev[: self.seeds]]
+            store.assign_seeds(self.suite, task, DEV, seeds)
+            out += [EpisodeKey(self.suite, task, s, "", NOMINAL) for s in seeds]
         return out
+
+
+def nominal_seeds(n: int) -> list[int]:
+    """The ``n`` seeds of the reference, on the last initial states: 49, 48, ..."""
+    if not 0 <= n <= INIT_STATES:
+        raise ValueError(f"nominal seeds: {n} is not between 0 and {INIT_STATES} (LIBERO's initial states per task)")
+    return [INIT_STATES - 1 - i for i in range(n)]
 
 
 def summary(plan: NominalPlan, rollouts: Sequence[Rollout]) -> dict[str, object]:

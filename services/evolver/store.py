@@ -172,6 +172,21 @@ class RolloutStore:
                 have[split].append(seed)
         return sorted(have[DEV]), sorted(have[HELDOUT])
 
+    def assign_seeds(self, suite: str, task: str, split: str, seeds: Sequence[int]) -> list[int]:
+        """Fix these exact seeds in ``split`` (idempotent); refuses a seed, or an initial state, that
+        another split of the task already holds. Returns the split's seeds."""
+        have = self.seeds(suite, task, split)
+        taken = {s % INIT_STATES: s for other in SPLITS if other != split for s in self.seeds(suite, task, other)}
+        for seed in seeds:
+            if seed in have:
+                continue
+            if seed % INIT_STATES in taken:
+                raise StoreError(f"{suite}/{task}: seed {seed} shares initial state {seed % INIT_STATES} with seed "
+                                 f"{taken[seed % INIT_STATES]} of another split")
+            self._insert_seed(suite, task, seed, split)
+            have.append(seed)
+        return sorted(have)
+
     def _fresh_seed(self, suite: str, task: str, avoid: Collection[int] = ()) -> int | None:
         """The smallest seed whose initial state no seed of the task uses and ``avoid`` does not
         name (None when none is left)."""

@@ -93,3 +93,12 @@ def test_a_suite_evolved_on_is_no_transfer_suite() -> None:
 
     with pytest.raises(SystemExit, match="libero_goal_swap is both evolved on and a transfer suite"):
         main(["--suites", "libero_goal_swap", "--transfer-suites", "libero_goal_lan,libero_goal_swap"])
+
+
+def test_nominal_seeds_that_would_share_a_reported_layout_are_refused() -> None:
+    """The nominal reference takes the last initial states, test and transfer seeds the first: a
+    budget where they would meet stops the command before any stack starts."""
+    from services.evolver.cmd_experiment import main
+
+    with pytest.raises(SystemExit, match="--nominal-seeds 5 \\+ test or transfer seeds 46 exceed"):
+        main(["--nominal-seeds", "5", "--transfer-seeds", "46"])

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from services.evolver import results
-from services.evolver.nominal import NOMINAL, NominalPlan, nominal_suite, summary
+from services.evolver.nominal import NOMINAL, NominalPlan, nominal_seeds, nominal_suite, summary
 from services.evolver.repair import SearchParams, search
-from services.evolver.store import DEV, HELDOUT, TEST, EpisodeKey, RolloutStore
+from services.evolver.store import DEV, HELDOUT, TEST, EpisodeKey, RolloutStore, StoreError
 from tests.unit.test_evolver_fixtures import make_trace
 from tests.unit.test_evolver_repair import PARENT, drop_cluster
 from tests.unit.test_evolver_results import SUITE, experiment
@@ -26,24 +26,25 @@ def test_the_nominal_suite_is_a_variants_original(suite: str, base: str) -> None
 
 
 def test_the_plan_runs_the_same_task_indices_on_dev_seeds_of_the_original_suite(tmp_path: Path) -> None:
-    """Two seeds per task index, dev seeds 1-2 of libero_goal, fixed once; named tasks do not carry
-    over; the evolved suite's splits are untouched; an original suite or 0 seeds plan nothing."""
+    """Two seeds per task index, dev seeds 49 and 48 of libero_goal (the last initial states: test
+    seeds take the first), fixed once; named tasks do not carry over; the evolved suite's splits are
+    untouched; an original suite or 0 seeds plan nothing."""
     store = RolloutStore(tmp_path)
     store.assign_splits("libero_goal_task", "8", 10, 10, 20)
     plan = NominalPlan.for_evolution("libero_goal_task", ("2", "8", "put_the_bowl_on_the_plate"), 2)
     keys = plan.keys(store)
     assert [(k.suite, k.task, k.seed, k.harness, k.purpose) for k in keys] == [
-        ("libero_goal", t, s, "", NOMINAL) for t in ("2", "8") for s in (1, 2)]
+        ("libero_goal", t, s, "", NOMINAL) for t in ("2", "8") for s in (49, 48)]
     assert plan.keys(store) == keys
     for task in ("2", "8"):
         assert (store.seeds("libero_goal", task, DEV), store.seeds("libero_goal", task, HELDOUT),
-                store.seeds("libero_goal", task, TEST)) == ([1, 2], [], [])
+                store.seeds("libero_goal", task, TEST)) == ([48, 49], [], [])
     assert len(store.seeds("libero_goal_task", "8", TEST)) == 20
     store.add(keys[0], outcome("success", 1))
     store.add(keys[1], outcome("miss", 2))
     rows = [store.get(k) for k in keys[:2]]
     assert summary(plan, [r for r in rows if r]) == {"suite": "libero_goal", "tasks": ["2", "8"], "seeds_per_task": 2,
-                                                     "seeds": [1, 2], "episodes": 2, "successes": 1}
+                                                     "seeds": [48, 49], "episodes": 2, "successes": 1}
     assert NominalPlan.for_evolution("libero_goal", ("2",), 2).empty
     assert NominalPlan.for_evolution("libero_goal_task", ("2",), 0).keys(store) == []
 
@@ -66,7 +67,7 @@ def test_the_results_page_reports_the_reference(tmp_path: Path) -> None:
     store = RolloutStore(tmp_path / SUITE)
     plan = NominalPlan.for_evolution(SUITE, ("6",), 2)
     keys = plan.keys(store)
-    rows = [store.add(k, outcome("success" if k.seed == 1 else "miss", k.seed)) for k in keys]
+    rows = [store.add(k, outcome("success" if k.seed == 49 else "miss", k.seed)) for k in keys]
     store.record("nominal", {"for_suite": SUITE, **summary(plan, rows)}, ident=SUITE)
     store.close()
     data = experiment(tmp_path)
@@ -74,6 +75,16 @@ def test_the_results_page_reports_the_reference(tmp_path: Path) -> None:
     assert data["suites"][SUITE]["tasks"][0]["rollouts"] == 3  # task 6's own: the nominal ones are libero_goal's
     assert data["rollouts_by_purpose"][SUITE]["purposes"][NOMINAL]["rollouts"] == 2
     text = results.render(data)
-    assert ("False-positive reference: 1 of 2 bare-policy episodes on libero_goal (tasks 6, seeds 1-2) succeeded; "
+    assert ("False-positive reference: 1 of 2 bare-policy episodes on libero_goal (tasks 6, seeds 48-49) succeeded; "
             "a critic that fires on one counts a false positive as on the task's own successes.") in text
-    assert EpisodeKey("libero_goal", "6", 1, "", NOMINAL) in keys
+    assert EpisodeKey("libero_goal", "6", 49, "", NOMINAL) in keys
+
+
+def test_seeds_are_the_last_initial_states_and_never_shared_with_another_split(tmp_path: Path) -> None:
+    assert nominal_seeds(3) == [49, 48, 47] and nominal_seeds(0) == []
+    with pytest.raises(ValueError, match="between 0 and 50"):
+        nominal_seeds(51)
+    store = RolloutStore(tmp_path)
+    store.assign_splits("libero_goal", "2", dev=0, heldout=0, test=49)  # test seeds 1-49 hold init states 1-49
+    with pytest.raises(StoreError, match="seed 49 shares initial state 49 with seed 49 of another split"):
+        NominalPlan.for_evolution("libero_goal_task", ("2",), 1).keys(store)
