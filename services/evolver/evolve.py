@@ -484,7 +484,9 @@ class Evolution:
 
     def final_eval(self, task: str) -> None:
         """The reported number, after every decision: the bare policy, the final harness and the final
-        harness around the do-nothing policy, on the test seeds (with this call's wall time)."""
+        harness around the do-nothing policy, on the test seeds. Its wall time adds up the calls
+        that measured this harness on these seeds: a resumed run that reads every rollout back keeps
+        the time the measurement took."""
         t0 = time.time()
         seeds = self.store.seeds(self.cfg.suite, task, TEST)
         ref = self.state[task].ref
@@ -492,12 +494,15 @@ class Evolution:
         final = bare if not ref else self._rollouts(self._keys(task, seeds, ref, "test"), f"final {task} harness", 0)
         control = self._rollouts(self._keys(task, seeds, ref, "control-test"), f"final {task} do-nothing control", 0,
                                  self.control_runner)
+        before = next((f for f in self.store.events("final") if f["suite"] == self.cfg.suite and f["task"] == task
+                       and f["harness"] == (ref or "bare") and f["seeds"] == seeds), {})
         self.store.record("final", {"suite": self.cfg.suite, "task": task, "harness": ref or "bare",
                                     "bare": list(count(bare)), "final": list(count(final)), "seeds": seeds,
                                     "arms": {"bare": arm(self.store, bare), "final": arm(self.store, final),
                                              "control": arm(self.store, control)},
                                     "split": self.store.split_manifest(self.cfg.suite, task),
-                                    "wall_s": time.time() - t0}, ident=f"{self.cfg.suite}/{task}")
+                                    "wall_s": float(before.get("wall_s", 0.0)) + time.time() - t0},
+                          ident=f"{self.cfg.suite}/{task}")
 
 
 def step_rank(reached: int, interventions: Sequence[dict[str, Any]], recovery_steps: int) -> tuple[int, bool, int]:
