@@ -24,8 +24,9 @@ from typing import Any
 
 from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft, PlanDraft, render
-from services.evolver.replay import SandboxedCritic, first_fire, resume_frame
+from services.evolver.replay import SandboxedCritic, first_fire, frames, resume_frame
 from services.evolver.trace import Trace
+from services.harness.runtime.api import Frame
 
 #: Which recoveries are worth pairing with which evidence: a typed compatibility table over the
 #: library's names ("a+b" is a playbook that runs a, then b); entries whose parts are missing from
@@ -157,14 +158,36 @@ class ReplayCase:
         return abs(step - self.t_eod) <= window if self.referenced else step <= self.t_eod + window
 
 
+class FrameCache:
+    """Each trace's replay frames, built once per search (a search replays every trace once per
+    template setting and stage set)."""
+
+    def __init__(self) -> None:
+        self._frames: dict[int, tuple[Trace, list[Frame]]] = {}
+
+    def __call__(self, trace: Trace) -> list[Frame]:
+        hit = self._frames.get(id(trace))
+        if hit is None or hit[0] is not trace:
+            hit = self._frames[id(trace)] = (trace, frames(trace))
+        return hit[1]
+
+
 def score_critic(fn: Any, params: Mapping[str, float], medoid: ReplayCase,
-                 members: Sequence[ReplayCase], successes: Sequence[Trace], window: int) -> tuple[int, float, float] | None:
-    """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD."""
-    fire = first_fire(medoid.trace, fn, params, start=medoid.start)
+                 members: Sequence[ReplayCase], successes: Sequence[Trace], window: int,
+                 stages: tuple[str, ...] = (), cache: FrameCache | None = None) -> tuple[int, float, float] | None:
+    """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD.
+    With ``stages`` (the kinds of first missing milestone the patch's rule is gated on) only firings
+    the orchestrator would grant count, on failures and successes alike."""
+    cache = cache or FrameCache()
+
+    def fire_on(trace: Trace, start: int = 0) -> int | None:
+        return first_fire(trace, fn, params, start=start, cached=cache(trace), stages=stages)
+
+    fire = fire_on(medoid.trace, medoid.start)
     if fire is None or not medoid.catches(fire, window):
         return None
-    caught = sum(1 for m in members if m.catches(first_fire(m.trace, fn, params, start=m.start), window))
-    fp = sum(1 for t in successes if first_fire(t, fn, params) is not None)
+    caught = sum(1 for m in members if m.catches(fire_on(m.trace, m.start), window))
+    fp = sum(1 for t in successes if fire_on(t) is not None)
     return fire, (1 + caught) / (1 + len(members)), fp / len(successes) if successes else 0.0
 
 
@@ -225,18 +248,30 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
     if not spec.repairable:
         return []
     preds, recs = library()
+    cache = FrameCache()
     critics = []
     for order, template in enumerate(_templates_for(spec, parent, preds)):
         base = parent.critics.get(f"c_{template}")
-        best = _best_setting(preds[template], base.params if base else None, medoid, members, successes, params)
-        if best is not None:
-            critics.append((best[0], order, template, best[1], best[2]))
+        # A plan's stages gate when its rule grants the critic, so the best setting (and whether one
+        # qualifies at all) is found per stage set: a firing on a success where the rule would veto
+        # it is no false positive.
+        best_for: dict[tuple[str, ...], Any] = {}
+        viable = []
+        for plan in recovery_options(template, spec.m_star, recs, holding=preds[template].holding):
+            stages = plan_stages(plan, spec.m_star)
+            if stages not in best_for:
+                best_for[stages] = _best_setting(preds[template], base.params if base else None, medoid, members,
+                                                 successes, params, stages, cache)
+            if best_for[stages] is not None:
+                viable.append((plan, stages, best_for[stages]))
+        if viable:
+            critics.append((min(v[2][0] for v in viable), order, template, viable))
     critics.sort(key=lambda c: (c[0], c[1]))
     scored: list[tuple[tuple[int, int], Candidate]] = []
-    for ci, (_, _, template, setting, res) in enumerate(critics):
-        for pi, plan in enumerate(recovery_options(template, spec.m_star, recs, holding=preds[template].holding)):
+    for ci, (_, _, template, viable) in enumerate(critics):
+        for pi, (plan, stages, (_, setting, res)) in enumerate(viable):
             critic = CriticDraft(template, setting, evidence=template, mode=plan.playbook or plan.recovery,
-                                 missing=plan_stages(plan, spec.m_star))
+                                 missing=stages)
             patched = parent.with_patch({f"c_{template}": critic}, {template: plan})
             if patched.fingerprint() == parent.fingerprint():
                 continue  # the parent's own critic and plan: no patch
@@ -251,15 +286,17 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
 
 
 def _best_setting(spec: Any, current: Mapping[str, float] | None, medoid: ReplayCase, members: Sequence[ReplayCase],
-                  successes: Sequence[Trace], params: SearchParams
+                  successes: Sequence[Trace], params: SearchParams, stages: tuple[str, ...] = (),
+                  cache: FrameCache | None = None
                   ) -> tuple[tuple[float, float, int, int], dict[str, float], tuple[int, float, float]] | None:
-    """A predicate template's best setting on the bounded grid, with its rank key (cluster coverage,
-    false positives, distance of the firing from t_EOD, parameters changed from ``current`` or the
-    defaults) and its replay score; None when no setting catches the medoid within the bounds."""
+    """A predicate template's best setting on the bounded grid for a rule gated on ``stages``, with
+    its rank key (cluster coverage, false positives, distance of the firing from t_EOD, parameters
+    changed from ``current`` or the defaults) and its replay score; None when no setting catches the
+    medoid within the bounds."""
     reference = dict(current) if current is not None else {k: p.default for k, p in spec.params.items()}
     best = None
     for setting in param_grid(spec.params, params.max_param_edits, params.grid_fraction):
-        res = score_critic(spec.fn, setting, medoid, members, successes, params.window)
+        res = score_critic(spec.fn, setting, medoid, members, successes, params.window, stages, cache)
         if res is None or res[2] > params.max_false_positive:
             continue
         key = (-res[1], res[2], abs(res[0] - medoid.t_eod), sum(reference.get(k) != v for k, v in setting.items()))

@@ -27,6 +27,7 @@ import numpy as np
 
 from services.harness.runtime import signals
 from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.orchestrator import first_missing, milestone_kind
 from services.harness.runtime.perception import Perception, episode_seed
 from services.evolver.trace import Trace
 
@@ -113,8 +114,9 @@ class SandboxedCritic:
         self.close()
 
     def first_fire(self, trace: Trace, instruction: str = "", start: int = 0,
-                   cached: list[Frame] | None = None) -> int | None:
-        """The env step at which the critic first proposed, or None; raises ReplayFailed."""
+                   cached: list[Frame] | None = None, stages: tuple[str, ...] = ()) -> int | None:
+        """The env step at which the critic first proposed (at a frame ``stages`` grants), or None;
+        raises ReplayFailed."""
         from services.harness.sandbox import codec
         from services.harness.sandbox.client import SandboxError
 
@@ -127,7 +129,7 @@ class SandboxedCritic:
             # The critic runs from ``start`` on, at the runtime's cadence; the frames before a call
             # reach the child's window ahead of it.
             for k in _replayed(trace, fs, start):
-                if fs[k].step % every:
+                if fs[k].step % every or not granted(trace, fs[k], stages):
                     continue
                 res = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run, lambda i: limit)[0]
                 if res.kind == codec.R_PROPOSAL:
@@ -141,18 +143,29 @@ class SandboxedCritic:
         return None
 
 
+def granted(trace: Trace, frame: Frame, stages: tuple[str, ...]) -> bool:
+    """Whether the orchestrator could grant a critic gated on ``stages`` (kinds of first missing
+    milestone, a rule's ``missing``) at this frame; every frame when ``stages`` is empty. Once every
+    milestone is reached nothing is missing, and no gated rule grants anything."""
+    return not stages or milestone_kind(first_missing(trace.milestone_names, frame.milestones)) in stages
+
+
 def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any] | SandboxedCritic,
                params: Mapping[str, float], instruction: str = "", start: int = 0,
-               cached: list[Frame] | None = None) -> int | None:
-    """The env step at which ``fn(window, params)`` first returned evidence, or None. A
-    :class:`SandboxedCritic` runs in its sandbox child (with the parameters it was loaded with) and
-    raises ReplayFailed when it fails; a library predicate that raises is silent on that trace."""
+               cached: list[Frame] | None = None, stages: tuple[str, ...] = ()) -> int | None:
+    """The env step at which ``fn(window, params)`` first returned evidence, or None; with
+    ``stages``, only frames where the runtime would grant a critic gated on them count (a firing the
+    orchestrator vetoes interrupts nothing). A :class:`SandboxedCritic` runs in its sandbox child
+    (with the parameters it was loaded with) and raises ReplayFailed when it fails; a library
+    predicate that raises is silent on that trace."""
     if isinstance(fn, SandboxedCritic):
-        return fn.first_fire(trace, instruction, start, cached)
+        return fn.first_fire(trace, instruction, start, cached, stages)
     fs = cached if cached is not None else frames(trace)
     # The runtime's window is widened past every integer parameter (a horizon in frames), so is this.
     size = max([WINDOW, *(int(v) + 1 for v in params.values() if float(v).is_integer())])
     for k in _replayed(trace, fs, start):
+        if not granted(trace, fs[k], stages):
+            continue
         window = Window(frames=fs[max(0, k - size + 1): k + 1], instruction=instruction,
                         milestone_names=trace.milestone_names)
         try:

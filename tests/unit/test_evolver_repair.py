@@ -58,8 +58,12 @@ def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     spec, medoid, members, succ = drop_cluster()
     assert spec.layer == "critic"
     cands = search(spec, PARENT, medoid, members, succ, SearchParams(max_candidates=3))
-    assert cands and cands[0].critic.template == "grasp_lost"
-    best = cands[0]
+    # The drop also shows as a hand that stops approaching the object: non_approach fires at t_EOD
+    # too and leads; on the success it fires only once every milestone is reached, where no rule
+    # grants anything, so it is no false positive there.
+    assert [c.critic.template for c in cands[:2]] == ["non_approach", "grasp_lost"]
+    assert cands[0].false_positive == 0.0 and cands[0].fire_step == medoid.t_eod
+    best = cands[1]
     assert abs(best.fire_step - medoid.t_eod) <= 40 and best.coverage == 1.0 and best.false_positive == 0.0
     assert best.plan.playbook == "acquire" and best.plan.recovery == "regrasp" and "on" in best.critic.missing
     assert all(c.plan.playbook != "place" for c in cands)
@@ -72,7 +76,23 @@ def test_search_finds_a_grasp_lost_critic_for_a_drop_cluster() -> None:
     assert not {c.apply(PARENT).fingerprint() for c in again} & rejected
     # ... for this task only: the same patch on another task's harness is a different candidate.
     other = HarnessDraft("evolved-9", ("9",))
-    assert search(spec, other, medoid, members, succ, SearchParams(max_candidates=3), rejected.__contains__)[0] == best
+    assert best in search(spec, other, medoid, members, succ, SearchParams(max_candidates=3), rejected.__contains__)
+
+
+def test_false_positives_count_only_firings_a_rule_would_grant() -> None:
+    """non_approach fires on the successful episode after its last milestone: gated on any stage,
+    that firing is vetoed (nothing is missing), so it is no false positive; ungated it is one."""
+    from services.evolver.repair import score_critic
+
+    spec, medoid, members, succ = drop_cluster()
+    pred = PREDICATES["non_approach"]
+    defaults = {k: v.default for k, v in pred.params.items()}
+    assert first_fire(succ[0], pred.fn, defaults) is not None
+    assert first_fire(succ[0], pred.fn, defaults, stages=("on",)) is None
+    ungated = score_critic(pred.fn, defaults, medoid, members, succ, 40)
+    gated = score_critic(pred.fn, defaults, medoid, members, succ, 40, stages=("reached", "on"))
+    assert ungated is not None and ungated[2] == 1.0
+    assert gated is not None and gated[2] == 0.0 and gated[:2] == ungated[:2]
 
 
 def test_patch_checks_refuse_unknown_templates_out_of_range_and_oversized_patches() -> None:
