@@ -145,11 +145,11 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
     if why is not None:
         return None, why
     full = resolve(preds[template].params, setting, template)
-    res = score_critic(preds[template].fn, full, medoid, members, successes, params.window)
+    res = score_critic(preds[template].fn, full, medoid, members, successes, params.window, critic.missing)
     if res is None:
         return None, f"{template} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
     if res[2] > params.max_false_positive:
-        return None, f"{template} fires on {res[2]:.0%} of successful rollouts"
+        return None, f"{template} fires on {res[2]:.0%} of successful rollouts where its rule would grant it"
     critic = CriticDraft(template, full, evidence=template, mode=recovery, missing=plan_stages(plan, spec.m_star))
     edits = parent.with_patch({f"c_{template}": critic}, {template: plan}).edits_from(parent)
     return Candidate(f"c_{template}", critic, plan, res[0], res[1], res[2], edits, source="llm"), ""
@@ -186,7 +186,7 @@ def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessD
     except ReplayFailed as exc:
         return None, str(exc)
     try:
-        res = score_critic(detect, setting, medoid, members, successes, params.window)
+        res = score_critic(detect, setting, medoid, members, successes, params.window, critic.missing)
     except ReplayFailed as exc:
         return None, str(exc)  # raised, overran or crashed on a replay: recorded, the next patch goes on
     finally:
@@ -195,6 +195,6 @@ def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessD
     if res is None:
         return None, f"{name} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
     if res[2] > params.max_false_positive:
-        return None, f"{name} fires on {res[2]:.0%} of successful rollouts"
+        return None, f"{name} fires on {res[2]:.0%} of successful rollouts where its rule would grant it"
     edits = cand.apply(parent).edits_from(parent)
     return Candidate(name, critic, plan, res[0], res[1], res[2], edits, source="llm"), ""
