@@ -96,6 +96,10 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
     if test < 0 or total > INIT_STATES:
         raise JobError("invalid", f"spec.dev_seeds + heldout_seeds + test_seeds = {total}: the three splits must sit on "
                                   f"disjoint initial states and a task has {INIT_STATES}")
+    nominal = EvolveConfig.nominal_seeds if spec.get("nominal_seeds") is None else int(spec["nominal_seeds"])
+    if nominal < 0 or nominal + test > INIT_STATES:
+        raise JobError("invalid", f"spec.nominal_seeds {nominal} + test_seeds {test}: the nominal reference takes the "
+                                  f"last initial states and the test seeds the first, {INIT_STATES} in all")
     if spec.get("llm") and _llm() is None:
         raise JobError("precondition", "spec.llm asks for the LLM backend but this evolver service has no "
                                        "ZETTA_EVOLVER_LLM_URL configured")
@@ -107,7 +111,7 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
             "max_clusters": int(spec.get("max_clusters") or EvolveConfig.max_clusters),
             "max_candidates": int(spec.get("max_candidates") or SearchParams.max_candidates),
             "max_depth": int(spec.get("max_depth") or EvolveConfig.max_depth), "test_seeds": test,
-            "llm": bool(spec.get("llm", False))}
+            "llm": bool(spec.get("llm", False)), "nominal_seeds": nominal}
 
 
 class JobManager:
@@ -211,7 +215,8 @@ class JobManager:
                                max_clusters=spec["max_clusters"], search=SearchParams(max_candidates=spec["max_candidates"]),
                                gate=GateParams(spec["regression_min"]), max_depth=spec["max_depth"],
                                test_seeds=int(spec.get("test_seeds") or EvolveConfig.test_seeds),
-                               llm=_llm() if spec.get("llm") else None)
+                               llm=_llm() if spec.get("llm") else None,
+                               nominal_seeds=int(spec.get("nominal_seeds", EvolveConfig.nominal_seeds)))
             run = RunConfig(gateway=self.gateway, model=spec["model"], execute_steps=spec["execute_steps"],
                             max_steps=spec["max_steps"], concurrency=spec["concurrency"])
             Evolution(cfg, store, run, registry, self._progress(job, store)).run()

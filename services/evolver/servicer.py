@@ -26,7 +26,7 @@ def _spec_dict(spec: evolver_pb2.EvolutionSpec) -> dict[str, object]:
             "max_steps": spec.max_steps, "concurrency": spec.concurrency, "name": spec.name,
             "regression_min": spec.regression_min, "max_clusters": spec.max_clusters,
             "max_candidates": spec.max_candidates, "max_depth": spec.max_depth, "test_seeds": spec.test_seeds,
-            "llm": spec.llm}
+            "llm": spec.llm, "nominal_seeds": spec.nominal_seeds if spec.HasField("nominal_seeds") else None}
 
 
 def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
@@ -41,7 +41,8 @@ def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
             max_steps=int(s["max_steps"]), concurrency=int(s["concurrency"]), name=str(s["name"]),
             regression_min=float(s["regression_min"]), max_clusters=int(s["max_clusters"]),
             max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", EvolveConfig.max_depth)),
-            test_seeds=int(s.get("test_seeds", EvolveConfig.test_seeds)), llm=bool(s.get("llm", False))))
+            test_seeds=int(s.get("test_seeds", EvolveConfig.test_seeds)), llm=bool(s.get("llm", False)),
+            nominal_seeds=int(s.get("nominal_seeds", EvolveConfig.nominal_seeds))))
     if (job.root / "store" / "index.sqlite").exists():
         store = RolloutStore(job.root / "store")
         try:

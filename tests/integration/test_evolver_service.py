@@ -90,6 +90,9 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(dev_seeds=40, heldout_seeds=10)), timeout=10)
         assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "disjoint initial states" in err.value.details()
         with pytest.raises(grpc.RpcError) as err:
+            stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(nominal_seeds=-1)), timeout=10)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "nominal_seeds" in err.value.details()
+        with pytest.raises(grpc.RpcError) as err:
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(spec=spec(llm=True)), timeout=10)
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "ZETTA_EVOLVER_LLM_URL" in err.value.details()
         with pytest.raises(grpc.RpcError) as err:
@@ -111,7 +114,7 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
         assert status.rollouts >= 4 and Path(status.report_path).exists()  # 2 dev + 1 test + its control at least
         arms = {s.arm for s in status.success}
         assert {"dev", "test_bare", "test_final", "test_control"} <= arms
-        assert status.spec.test_seeds == 1
+        assert status.spec.test_seeds == 1 and status.spec.nominal_seeds == 2
         assert [j.job_id for j in stub.ListEvolutions(evolver_pb2.ListEvolutionsRequest(), timeout=10).jobs] == ["j1"]
         refl = reflection_pb2_grpc.ServerReflectionStub(ch)
         names = [s.name for r in refl.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")]))

@@ -90,3 +90,17 @@ def test_seeds_are_the_last_initial_states_and_never_shared_with_another_split(t
     store.assign_splits("libero_goal", "2", dev=0, heldout=0, test=49)  # test seeds 1-49 hold init states 1-49
     with pytest.raises(StoreError, match="seed 49 shares initial state 49 with seed 49 of another split"):
         NominalPlan.for_evolution("libero_goal_task", ("2",), 1).keys(store)
+
+
+def test_an_evolver_job_asks_for_it_like_the_cli() -> None:
+    """EvolutionSpec.nominal_seeds: unset selects the CLI's default, 0 runs none, a budget that would
+    share a layout with a test seed is refused naming the fields."""
+    from services.evolver.evolve import EvolveConfig
+    from services.evolver.jobs import JobError, check_spec
+
+    spec = {"suite": "libero_goal_task", "tasks": ["2"], "rounds": 1, "dev_seeds": 2, "heldout_seeds": 2,
+            "test_seeds": 20}
+    assert check_spec(spec)["nominal_seeds"] == EvolveConfig.nominal_seeds == 2
+    assert check_spec({**spec, "nominal_seeds": 0})["nominal_seeds"] == 0
+    with pytest.raises(JobError, match="spec.nominal_seeds 31 \\+ test_seeds 20"):
+        check_spec({**spec, "nominal_seeds": 31})
