@@ -130,7 +130,7 @@ class Evolution:
         self.run_cfg = run
         self.registry = registry
         self.progress = progress
-        self.nominal_plan = NominalPlan.for_evolution(cfg.suite, cfg.tasks, cfg.nominal_seeds)
+        self.nominal_plan = NominalPlan.for_evolution(cfg.suite, cfg.nominal_seeds)
         self._nominal: list[Trace] | None = None
         self.state = {t: TaskState(HarnessDraft(name=_safe(f"{cfg.name}-{t}"), tasks=(t,))) for t in cfg.tasks}
         self._restore()

@@ -24,6 +24,9 @@ from services.evolver.store import DEV, INIT_STATES, EpisodeKey, Rollout, Rollou
 NOMINAL = "nominal"
 #: LIBERO-PRO's perturbed suites are named <base>_<variant> (services/env_worker/families/libero.py).
 _LIBERO_PRO_SUFFIXES = ("_task", "_swap", "_lan", "_object")
+#: LIBERO-PRO perturbs LIBERO's 10-task suites (goal, spatial, object, 10): the reference runs all ten,
+#: whichever of them an evolution works on, so its size and its verdicts do not depend on ``--tasks``.
+ORIGINAL_TASKS = tuple(str(i) for i in range(10))
 
 
 def nominal_suite(suite: str) -> str:
@@ -44,10 +47,9 @@ class NominalPlan:
     seeds: int
 
     @classmethod
-    def for_evolution(cls, suite: str, tasks: Sequence[str], seeds: int) -> "NominalPlan":
-        """The plan for an evolution on ``suite``: the same task indices of its original suite (a
-        LIBERO-PRO variant perturbs each task of it; task names do not carry over)."""
-        return cls(nominal_suite(suite), tuple(t for t in tasks if t.isdigit()), max(0, seeds))
+    def for_evolution(cls, suite: str, seeds: int) -> "NominalPlan":
+        """The plan for an evolution on ``suite``: every task of its original suite."""
+        return cls(nominal_suite(suite), ORIGINAL_TASKS, max(0, seeds))
 
     @property
     def empty(self) -> bool:

@@ -25,28 +25,29 @@ def test_the_nominal_suite_is_a_variants_original(suite: str, base: str) -> None
     assert nominal_suite(suite) == base
 
 
-def test_the_plan_runs_the_same_task_indices_on_dev_seeds_of_the_original_suite(tmp_path: Path) -> None:
-    """Two seeds per task index, dev seeds 49 and 48 of libero_goal (the last initial states: test
-    seeds take the first), fixed once; named tasks do not carry over; the evolved suite's splits are
-    untouched; an original suite or 0 seeds plan nothing."""
+def test_the_plan_runs_every_task_of_the_original_suite_on_its_last_initial_states(tmp_path: Path) -> None:
+    """Two seeds per task, dev seeds 49 and 48 of libero_goal's ten tasks (the last initial states:
+    test seeds take the first), fixed once and whatever tasks the evolution works on; the evolved
+    suite's splits are untouched; an original suite or 0 seeds plan nothing."""
     store = RolloutStore(tmp_path)
     store.assign_splits("libero_goal_task", "8", 10, 10, 20)
-    plan = NominalPlan.for_evolution("libero_goal_task", ("2", "8", "put_the_bowl_on_the_plate"), 2)
+    plan = NominalPlan.for_evolution("libero_goal_task", 2)
     keys = plan.keys(store)
     assert [(k.suite, k.task, k.seed, k.harness, k.purpose) for k in keys] == [
-        ("libero_goal", t, s, "", NOMINAL) for t in ("2", "8") for s in (49, 48)]
+        ("libero_goal", str(t), s, "", NOMINAL) for t in range(10) for s in (49, 48)]
     assert plan.keys(store) == keys
-    for task in ("2", "8"):
+    for task in map(str, range(10)):
         assert (store.seeds("libero_goal", task, DEV), store.seeds("libero_goal", task, HELDOUT),
                 store.seeds("libero_goal", task, TEST)) == ([48, 49], [], [])
     assert len(store.seeds("libero_goal_task", "8", TEST)) == 20
     store.add(keys[0], outcome("success", 1))
     store.add(keys[1], outcome("miss", 2))
     rows = [store.get(k) for k in keys[:2]]
-    assert summary(plan, [r for r in rows if r]) == {"suite": "libero_goal", "tasks": ["2", "8"], "seeds_per_task": 2,
-                                                     "seeds": [48, 49], "episodes": 2, "successes": 1}
-    assert NominalPlan.for_evolution("libero_goal", ("2",), 2).empty
-    assert NominalPlan.for_evolution("libero_goal_task", ("2",), 0).keys(store) == []
+    assert summary(plan, [r for r in rows if r]) == {"suite": "libero_goal", "tasks": [str(t) for t in range(10)],
+                                                     "seeds_per_task": 2, "seeds": [48, 49], "episodes": 2,
+                                                     "successes": 1}
+    assert NominalPlan.for_evolution("libero_goal", 2).empty
+    assert NominalPlan.for_evolution("libero_goal_task", 0).keys(store) == []
 
 
 def test_a_critic_that_fires_on_nominal_successes_is_not_proposed() -> None:
@@ -67,7 +68,7 @@ def test_the_results_page_reports_the_reference(tmp_path: Path) -> None:
     """The reference's rollouts are counted by purpose, kept out of the evolved task's rollout count,
     and described under the suite's table."""
     store = RolloutStore(tmp_path / SUITE)
-    plan = NominalPlan.for_evolution(SUITE, ("6",), 2)
+    plan = NominalPlan(SUITE.removesuffix("_task"), ("6",), 2)
     keys = plan.keys(store)
     rows = [store.add(k, outcome("success" if k.seed == 49 else "miss", k.seed)) for k in keys]
     store.record("nominal", {"for_suite": SUITE, **summary(plan, rows)}, ident=SUITE)
@@ -89,7 +90,7 @@ def test_seeds_are_the_last_initial_states_and_never_shared_with_another_split(t
     store = RolloutStore(tmp_path)
     store.assign_splits("libero_goal", "2", dev=0, heldout=0, test=49)  # test seeds 1-49 hold init states 1-49
     with pytest.raises(StoreError, match="seed 49 shares initial state 49 with seed 49 of another split"):
-        NominalPlan.for_evolution("libero_goal_task", ("2",), 1).keys(store)
+        NominalPlan.for_evolution("libero_goal_task", 1).keys(store)
 
 
 def test_an_evolver_job_asks_for_it_like_the_cli() -> None:
