@@ -76,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--superseded", metavar="NOTE", default=None,
                    help="mark the topic's results file as measured on weights that are no longer the shipped ones "
                         "(one topic; NOTE says what re-measures it)")
+    p.add_argument("--code-changed", metavar="NOTE", default=None,
+                   help="mark the topic's results file as measured by code that has changed since, at HEAD (one "
+                        "topic; NOTE says what changed and what re-measures it)")
     a = p.parse_args(argv)
     unknown = [t for t in a.topics if t not in TOPICS]
     found = sorted(f.stem for f in a.results_dir.glob("*.json"))
@@ -95,6 +98,14 @@ def main(argv: list[str] | None = None) -> int:
 
         data = a.results_dir / f"{a.topics[0]}.json"
         marked = superseded(json.loads(data.read_text()), weights_sha256(default_checkpoint()), a.superseded)
+        data.write_text(json.dumps(marked, indent=1) + "\n")
+    if a.code_changed is not None:
+        if len(a.topics) != 1:
+            p.error("--code-changed goes with exactly one topic")
+        from services.common.provenance import code_changed, git_source
+
+        data = a.results_dir / f"{a.topics[0]}.json"
+        marked = code_changed(json.loads(data.read_text()), str(git_source(ROOT).get("commit") or ""), a.code_changed)
         data.write_text(json.dumps(marked, indent=1) + "\n")
     topics = a.topics or found
     stale = []

@@ -64,7 +64,21 @@ def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
                      f"shipped checkpoint's (`{old['shipped_sha256'][:12]}`): the figures reproduce at commit "
                      f"`{commit[:12]}`, not with the shipped policy, until the command above is rerun. {old.get('note', '')}"
                      .rstrip())
+    if doc.get("code_changed"):
+        change = doc["code_changed"]
+        lines.append(f"- **The code that measures it changed after this run** (at commit `{change['commit'][:12]}`): "
+                     f"the figures reproduce at commit `{commit[:12]}`, not at `{change['commit'][:12]}` or later, until "
+                     f"the command above is rerun. {change.get('note', '')}".rstrip())
     return "\n".join(lines) + "\n"
+
+
+def code_changed(doc: Mapping[str, Any], commit: str, note: str = "") -> dict[str, Any]:
+    """``doc`` marked as measured by code that has changed since (at ``commit``) in a way that moves
+    its figures; its page says so at the top until the command is rerun."""
+    measured = str((doc.get("source") or {}).get("commit") or "")
+    if not commit or commit == measured:
+        raise ValueError("the change must be a commit other than the one the results were measured at")
+    return {**doc, "code_changed": {"commit": commit, "note": note}}
 
 
 def superseded(doc: Mapping[str, Any], shipped_sha256: str, note: str = "") -> dict[str, Any]:

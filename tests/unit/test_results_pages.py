@@ -140,6 +140,18 @@ def test_a_superseded_results_file_says_so_at_the_top_of_its_page() -> None:
         superseded(doc, "a" * 64)
 
 
+def test_a_result_whose_code_changed_says_so_at_the_top_of_its_page() -> None:
+    from services.common.provenance import code_changed
+
+    doc = {**_SOURCE, "rendered": "table"}
+    measured = doc["source"]["commit"]
+    page = gen.render("harness-cost", code_changed(doc, "c" * 40, "rerun: zetta y"))
+    assert (f"**The code that measures it changed after this run** (at commit `cccccccccccc`): the figures "
+            f"reproduce at commit `{measured[:12]}`") in page and "rerun: zetta y" in page
+    with pytest.raises(ValueError):
+        code_changed(doc, measured)
+
+
 def test_a_published_bench_names_the_command_that_reruns_it(tmp_path: Path) -> None:
     from services.common.provenance import page_header, publish
 
