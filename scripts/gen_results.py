@@ -64,6 +64,16 @@ def render(topic: str, doc: Mapping[str, Any]) -> str:
     return renderer(topic)(doc)
 
 
+def _rewrite(path: Path, doc: dict) -> None:
+    """Write a marked results file in the layout it had (its indentation, sorted keys or not), so
+    the mark is the whole diff."""
+    text = path.read_text()
+    second = text.splitlines()[1] if text.count("\n") > 1 else ""
+    indent = len(second) - len(second.lstrip(" ")) or 1
+    keys = list(json.loads(text))
+    path.write_text(json.dumps(doc, indent=indent, sort_keys=keys == sorted(keys)) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -97,16 +107,15 @@ def main(argv: list[str] | None = None) -> int:
         from services.common.provenance import weights_sha256
 
         data = a.results_dir / f"{a.topics[0]}.json"
-        marked = superseded(json.loads(data.read_text()), weights_sha256(default_checkpoint()), a.superseded)
-        data.write_text(json.dumps(marked, indent=1) + "\n")
+        _rewrite(data, superseded(json.loads(data.read_text()), weights_sha256(default_checkpoint()), a.superseded))
     if a.code_changed is not None:
         if len(a.topics) != 1:
             p.error("--code-changed goes with exactly one topic")
         from services.common.provenance import code_changed, git_source
 
         data = a.results_dir / f"{a.topics[0]}.json"
-        marked = code_changed(json.loads(data.read_text()), str(git_source(ROOT).get("commit") or ""), a.code_changed)
-        data.write_text(json.dumps(marked, indent=1) + "\n")
+        _rewrite(data, code_changed(json.loads(data.read_text()), str(git_source(ROOT).get("commit") or ""),
+                                    a.code_changed))
     topics = a.topics or found
     stale = []
     for topic in topics:
