@@ -236,3 +236,17 @@ def test_llm_critic_code_passes_the_loader_the_signal_whitelist_and_the_replay(l
     assert [c.name for c in runtime.critics] == [f"{cand.critic_name}.main"]
     assert any("'os' is not allowed" in r for r in refused) and any("task_object_bbox" in r for r in refused)
     assert "detect(window, params)" in _Handler.seen[-1]["body"]["messages"][1]["content"]
+    # The code critic replays in its sandbox child with the same stage gating as a template: its
+    # rule grants it at m*'s kind only when that is the one missing.
+    from services.evolver.repair import code_detector
+    from services.evolver.replay import SandboxedCritic
+
+    detect = code_detector(cand.apply(PARENT), cand.critic_name)
+    try:
+        fire = first_fire(medoid.trace, detect, {}, start=medoid.start)
+        assert fire is not None
+        assert first_fire(medoid.trace, detect, {}, start=medoid.start, stages=("on",)) == fire
+        assert first_fire(medoid.trace, detect, {}, start=medoid.start, stages=("reached_handle",)) is None
+    finally:
+        if isinstance(detect, SandboxedCritic):
+            detect.close()
