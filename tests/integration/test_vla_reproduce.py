@@ -1,8 +1,10 @@
 """`zetta train --variant image` reproduces the shipped checkpoint: same pipeline, success inside
 its interval.
 
-Slow (on a 2-core machine: oracle demos with frames, then training, about an hour and a half in
-all, then 2 x 50 closed-loop episodes): ``make test-slow``. Both checkpoints are evaluated on the
+Slow: ``make test-slow``. On a 2-core machine, oracle demos with frames, then training, then 2 x 50
+closed-loop episodes take 80 minutes to well over two hours (the machine that made the shipped
+checkpoint, 2026-12-04: 80 min; another, 2026-12-06: clean demos 2.6 s an episode, training 0.24 s
+a step); start it on a quiet machine with time for it. Both checkpoints are evaluated on the
 same held-out seeds (init states the demonstrations never used) and their Wilson intervals must
 overlap. ``ZETTA_REPRODUCE_DIR`` keeps the demonstrations and checkpoints there instead of in a
 temporary directory, so a run that is cut off resumes where it stopped (the pipeline's own resume).
