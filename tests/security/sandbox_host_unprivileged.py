@@ -47,40 +47,68 @@ def _mount(libc: ctypes.CDLL, source: str | None, target: str, fstype: str | Non
 
 
 def _blocked(paths: list[str]) -> dict[str, set[str]]:
-    """Directories other users may not traverse on the way to ``paths``: {dir: {entries needed}}."""
+    """Directories other users may not traverse on the way to ``paths``: {dir: {entries needed}}.
+
+    A needed path that is itself such a directory (a checkout at the root of a mode-0700 temporary
+    directory, on ``sys.path``) needs every entry it has."""
     out: dict[str, set[str]] = {}
     for path in paths:
         parts = os.path.realpath(path).split(os.sep)[1:]
-        for i in range(len(parts) - 1):
+        for i in range(len(parts)):
             here = os.sep + os.sep.join(parts[:i + 1])
             if not os.stat(here).st_mode & stat.S_IXOTH:
-                out.setdefault(here, set()).add(parts[i + 1])
+                if i + 1 < len(parts):
+                    out.setdefault(here, set()).add(parts[i + 1])
+                elif os.path.isdir(here):
+                    out.setdefault(here, set()).update(os.listdir(here))
                 break
     return out
 
 
+def _hold(libc: ctypes.CDLL, source: str) -> str:
+    """A bind mount of ``source`` (a directory or a file) outside the directory about to be covered."""
+    if os.path.isdir(source):
+        hold = tempfile.mkdtemp(prefix="zetta-userns-hold-")
+    else:
+        fd, hold = tempfile.mkstemp(prefix="zetta-userns-hold-")
+        os.close(fd)
+    _mount(libc, source, hold, None, MS_BIND | MS_REC)
+    return hold
+
+
+def _restore(libc: ctypes.CDLL, hold: str, target: str) -> None:
+    """Bind ``hold`` on a new entry ``target`` of the covering tmpfs and drop the hold."""
+    if os.path.isdir(hold):
+        os.mkdir(target, 0o755)
+    else:
+        os.close(os.open(target, os.O_CREAT | os.O_WRONLY, 0o644))
+    _mount(libc, hold, target, None, MS_BIND | MS_REC)
+    libc.umount2(hold.encode(), 2)  # MNT_DETACH: the bind on target stays
+    if os.path.isdir(hold):
+        os.rmdir(hold)
+    else:
+        os.unlink(hold)
+
+
 def drop_to(uid: int, gid: int) -> None:
-    """Make the interpreter reachable for ``uid`` in a private mount namespace, become it, re-exec."""
+    """Make the interpreter and this script reachable for ``uid`` in a private mount namespace,
+    become it, re-exec."""
     libc = ctypes.CDLL(None, use_errno=True)
-    needed = [sys.executable, sys.base_prefix, sys.prefix, *sys.path[1:]]
+    needed = [sys.executable, sys.base_prefix, sys.prefix, os.path.abspath(sys.argv[0]), *sys.path[1:]]
     blocked = _blocked([p for p in needed if p and os.path.exists(p)])
     if blocked:
         if libc.unshare(CLONE_NEWNS) != 0:
             raise OSError(ctypes.get_errno(), "unshare(CLONE_NEWNS)")
         _mount(libc, None, "/", None, MS_REC | MS_PRIVATE)
         for directory, entries in blocked.items():
-            holds = {}
-            for entry in entries:
-                hold = tempfile.mkdtemp(prefix="zetta-userns-hold-")
-                _mount(libc, os.path.join(directory, entry), hold, None, MS_BIND | MS_REC)
-                holds[entry] = hold
+            links = {e: os.readlink(os.path.join(directory, e)) for e in entries
+                     if os.path.islink(os.path.join(directory, e))}
+            holds = {e: _hold(libc, os.path.join(directory, e)) for e in entries if e not in links}
             _mount(libc, "tmpfs", directory, "tmpfs", 0, "mode=0755,size=64k")
+            for entry, link in links.items():
+                os.symlink(link, os.path.join(directory, entry))
             for entry, hold in holds.items():
-                target = os.path.join(directory, entry)
-                os.mkdir(target, 0o755)
-                _mount(libc, hold, target, None, MS_BIND | MS_REC)
-                libc.umount2(hold.encode(), 2)  # MNT_DETACH: the bind on target stays
-                os.rmdir(hold)
+                _restore(libc, hold, os.path.join(directory, entry))
             _mount(libc, None, directory, None, 0x20 | MS_RDONLY)  # MS_REMOUNT: read-only
     os.setgroups([])
     os.setgid(gid)
