@@ -253,6 +253,7 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
 
     async def _run(self, runtime: HarnessRuntime, start: Any, resolved: Resolved,
                    requests: AsyncIterator[critic_pb2.EvaluateRequest]) -> AsyncIterator[critic_pb2.EvaluateResponse]:
+        runtime.policy_instructions = tuple(start.policy_instructions)
         runtime.start(start.instruction, list(start.milestone_names))
         yield critic_pb2.EvaluateResponse(
             started=critic_pb2.EvaluateStarted(manifest=manifest_message(self.registry.manifest(resolved)))

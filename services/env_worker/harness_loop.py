@@ -166,6 +166,15 @@ class SlotHarness:
         return self.decision.action is not None
 
     @property
+    def policy_instructions(self) -> tuple[str, ...]:
+        """The instructions the model serving this slot was trained on (Window.policy_instructions)."""
+        return self.runtime.policy_instructions
+
+    @policy_instructions.setter
+    def policy_instructions(self, instructions: Sequence[str]) -> None:
+        self.runtime.policy_instructions = tuple(instructions)
+
+    @property
     def redirect(self) -> str:
         """The instruction the policy is asked under while a recovery redirects it ("" otherwise)."""
         return self.decision.instruction

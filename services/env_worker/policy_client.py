@@ -77,6 +77,7 @@ class PolicyClient:
         self._busy = busy
         self._hold_timer: asyncio.TimerHandle | None = None
         self._inputs: dict[str, frozenset[str]] = {}
+        self._instructions: dict[str, tuple[str, ...]] = {}
         self._default_timeout_ms = default_timeout_ms
         self._hop = HOP_LATENCY.labels("env_worker", "policy_infer")
 
@@ -86,9 +87,17 @@ class PolicyClient:
             listing = await self._stubs[0].ListModels(policy_worker_pb2.ListModelsRequest(), timeout=10)
             for m in listing.models:
                 self._inputs[m.name] = frozenset(s.name for s in m.inputs)
+                self._instructions[m.name] = tuple(m.instructions)
                 if m.is_default:
                     self._inputs[""] = self._inputs[m.name]
+                    self._instructions[""] = self._instructions[m.name]
         return self._inputs.get(model)
+
+    async def model_instructions(self, model: str) -> tuple[str, ...]:
+        """The instructions a model was trained on (ModelInfo.instructions; empty when it lists
+        none or the policy workers do not know it)."""
+        await self.model_inputs(model)
+        return self._instructions.get(model, ())
 
     async def infer(
         self, token: str, model: str, observation: Mapping[str, np.ndarray], instruction: str, timeout_ms: int

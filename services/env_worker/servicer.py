@@ -270,8 +270,15 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
         episode = slot.require_episode()
         assert slot.last_obs is not None
         token = f"{self.worker_id}/{slot.session_id}/{episode.episode_id}/{slot.env.episode_step}"
-        # A harness recovery that redirects the policy names the instruction of its sub-goal.
-        redirect = slot.harness.redirect if slot.harness is not None else ""
+        redirect = ""
+        if slot.harness is not None:
+            # A recovery that redirects the policy asks it under an instruction it was trained on
+            # where one serves the sub-goal: the harness learns the serving model's from here.
+            try:
+                slot.harness.policy_instructions = await self.policy.model_instructions(policy.model)
+            except grpc.aio.AioRpcError as err:
+                raise ge.from_rpc_error(err, "policy worker", component="policy worker") from None
+            redirect = slot.harness.redirect
         instruction = redirect or policy.instruction or episode.instruction
         out = await self.policy.infer(token, policy.model, slot.last_obs, instruction, policy.timeout_ms)
         actions = decode(out.actions)

@@ -84,7 +84,8 @@ def interventions(report: types_pb2.HarnessReport) -> list[dict[str, Any]]:
     """The episode's interventions as plain dicts (who proposed, evidence, decision, span, outcome)."""
     return [{"id": iv.id, "recovery": iv.kind, "critic": iv.proposer, "evidence": iv.evidence,
              "details": dict(iv.details), "decision": iv.decision, "start_step": iv.start_step,
-             "end_step": iv.end_step, "outcome": iv.outcome, "actions": iv.actions} for iv in report.interventions]
+             "end_step": iv.end_step, "outcome": iv.outcome, "actions": iv.actions, "instruction": iv.instruction}
+            for iv in report.interventions]
 
 
 async def run_one(gw: Gateway, session_id: str, key: EpisodeKey, cfg: RunConfig) -> Outcome:

@@ -20,7 +20,7 @@ def report_to_proto(report: EpisodeReport, out: types_pb2.HarnessReport) -> None
         out.interventions.add(
             id=iv.id, kind=iv.kind, proposer=iv.proposer, evidence=iv.evidence, details=iv.details,
             decision=iv.decision, start_step=iv.start_step, end_step=iv.end_step, outcome=iv.outcome,
-            actions=iv.actions,
+            actions=iv.actions, instruction=iv.instruction,
         )
     for kind, n in report.interventions_by_kind.items():
         out.interventions_by_kind[kind] = n

@@ -102,7 +102,8 @@ class PolicyWorkerServicer(policy_worker_pb2_grpc.PolicyWorkerServiceServicer):
     async def ListModels(self, request, context) -> policy_worker_pb2.ListModelsResponse:
         resp = policy_worker_pb2.ListModelsResponse()
         for name, model in self.models.items():
-            info = resp.models.add(name=name, chunk_size=model.chunk_size, is_default=name == self.default_model)
+            info = resp.models.add(name=name, chunk_size=model.chunk_size, is_default=name == self.default_model,
+                                   instructions=getattr(model, "instructions", ()))
             for spec in model.input_specs():
                 spec_to_wire(spec, info.inputs.add())
             spec_to_wire(ACTION_SPEC, info.action)

@@ -1,5 +1,7 @@
 """An image VLA served through the whole stack: the session renders its camera and the policy
-worker batches frames; a session rendering another size gets INVALID_ARGUMENT naming it.
+worker batches frames; a session rendering another size gets INVALID_ARGUMENT naming it. A
+harness that redirects the policy asks it under an instruction the checkpoint was trained on,
+which the env worker learned from the policy worker's ListModels.
 
 The checkpoint is a tiny one trained here for a few steps (the mechanics, not the success: the
 shipped checkpoint's success is measured by `zetta eval-policy`, docs/results/vla.md)."""
@@ -65,3 +67,68 @@ async def test_frames_flow_through_the_stack_and_a_wrong_size_is_refused(stack_f
         assert again[0].episode_step == 8
         await good.close()
         await wrong.close()
+
+
+REDIRECT_SKILL = """+++
+name = "redirect-test"
+description = "redirect the policy to its sub-goal at step 4"
+
+[runtime]
+critic_budget_ms = 50.0
+critic_hard_limit_ms = 500.0
+
+[[adjudication]]
+evidence = "late"
+mode = "ask"
+priority = 1
++++
+test harness
+"""
+
+REDIRECT_CRITICS = '''
+from services.harness.runtime.api import Proposal
+
+
+def critic_late(window, params):
+    """Proposes a redirection at step 4, after the policy was first asked."""
+    if window.now.step == int(params["at"]):
+        return Proposal("critics.late", "late", "ask", {"step": float(window.now.step)})
+    return None
+'''
+
+
+def redirect_package(root: Path) -> Path:
+    for sub in ("tools", "plans", "params"):
+        (root / sub).mkdir(parents=True)
+    (root / "SKILL.md").write_text(REDIRECT_SKILL)
+    (root / "tools" / "critics.py").write_text(REDIRECT_CRITICS)
+    (root / "plans" / "playbooks.toml").write_text(
+        '[ask]\nrecovery = "redirect_instruction"\nparams = { steps = 8 }\nmax_steps = 8\n')
+    (root / "params" / "critics.toml").write_text("at = 4\n")
+    return root
+
+
+async def test_a_redirection_asks_the_policy_under_an_instruction_its_checkpoint_was_trained_on(
+        stack_factory, tmp_path) -> None:
+    """The episode's instruction is one the checkpoint never saw; the redirection of its pick
+    sub-goal (reached(cream_cheese_1)) asks the policy under the checkpoint's own sentence on the
+    cream cheese, not under the sub-goal's words ("pick up the cream cheese")."""
+    from services.policy_worker.vla.policy import ZettaVLAPolicy
+
+    ck = tiny_image_checkpoint(tmp_path)
+    specs = ZettaVLAPolicy(ck, name="zetta-vla-image").input_specs()
+    stack = stack_factory(env_workers=1, slots=1, families=("libero",), models=("zetta-vla-image",), critic=False,
+                          heartbeat_timeout_ms=15000,
+                          extra_env={"ZETTA_VLA_CHECKPOINT": str(ck), "ZETTA_LOG_LEVEL": "INFO"})
+    async with Gateway(stack.gateway_address) as gw:
+        group = await gw.create_sessions(env_family="libero", n=1, env_config={**LIBERO_CREAM, **render_config(specs)})
+        await group.reset(seed=0, instruction="put the cream cheese on the plate",
+                          harness_dir=str(redirect_package(tmp_path / "pkg")))
+        (summary,) = await group.run_episode(max_steps=16, execute_steps=4)
+        report = summary.harness_report
+        assert report is not None
+        (iv,) = report.interventions
+        # Step 4 made the critic propose; its proposal came with step 5 (pipelined code critics).
+        assert iv["kind"] == "ask" and iv["start_step"] == 5
+        assert iv["instruction"] == INSTRUCTION, iv
+        await group.close()

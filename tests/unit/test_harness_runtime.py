@@ -475,3 +475,57 @@ def test_instruction_redirection_lets_the_policy_act_under_the_subgoal_until_it_
     done = rt.step(obs(0.0), ACT, frozenset({"reached(bowl_1)", "grasped(bowl_1)"}))
     assert done.mode == "policy" and done.instruction == "" and rt.report.interventions[0].outcome == "reentered"
     assert rt.report.recovery_actions == 2
+
+
+TRAINED = ("open the middle drawer of the cabinet", "open the top drawer and put the bowl inside",
+           "push the plate to the front of the stove", "put the bowl on the plate", "put the bowl on the stove",
+           "put the bowl on top of the cabinet", "put the cream cheese in the bowl", "put the wine bottle on the rack",
+           "put the wine bottle on top of the cabinet", "turn on the stove")
+
+
+@pytest.mark.parametrize(("milestone", "episode", "expected"), [
+    # A pick sub-goal: a trained pick-and-place of the same object; ties go to the episode's words.
+    ("lifted(wine_bottle_1)", "put the wine bottle on the plate", "put the wine bottle on the rack"),
+    ("grasped(wine_bottle_1)", "put the wine bottle in the bowl", "put the wine bottle on the rack"),
+    ("grasped(akita_black_bowl_1)", "put the bowl on top of the cabinet", "put the bowl on top of the cabinet"),
+    ("reached(akita_black_bowl_1)", "put the bowl in the basket", "put the bowl on the plate"),
+    ("grasped(cream_cheese_1)", "put the cream cheese on the plate", "put the cream cheese in the bowl"),
+    # A placement needs the same object and target.
+    ("on(akita_black_bowl_1,flat_stove_1_cook_region)", "", "put the bowl on the stove"),
+    ("on(wine_bottle_1,plate_1)", "", ""),
+    # An articulation: the same verb, the fixture's words (its object phrase counts double).
+    ("open(wooden_cabinet_1_middle_region)", "", "open the middle drawer of the cabinet"),
+    ("open(wooden_cabinet_1_top_region)", "", "open the top drawer and put the bowl inside"),
+    ("turnon(flat_stove_1)", "", "turn on the stove"),
+    ("close(wooden_cabinet_1_top_region)", "", ""),
+    # Nothing the policy was trained on moves a plate by picking it.
+    ("grasped(plate_1)", "", ""),
+])
+def test_a_subgoal_maps_to_an_instruction_the_policy_was_trained_on(milestone: str, episode: str,
+                                                                      expected: str) -> None:
+    from services.harness.runtime.library.recoveries import policy_instruction
+
+    assert policy_instruction(milestone, TRAINED, episode) == expected
+    assert policy_instruction(milestone, (), episode) == ""
+
+
+def test_redirection_asks_the_policy_under_a_trained_instruction_and_reports_it() -> None:
+    """With the serving model's instructions known, the pick sub-goal of an unseen task is asked
+    under a trained sentence on the same object, until the object is lifted; the intervention
+    records the sentence. Without them, the sub-goal's own words."""
+    plans = {"p": {"push": {"recovery": "redirect_instruction", "params": {"steps": 10}}}}
+    names = ["reached(wine_bottle_1)", "grasped(wine_bottle_1)", "lifted(wine_bottle_1)", "on(wine_bottle_1,plate_1)"]
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.0, "k": 1}}, plans))
+    rt.policy_instructions = TRAINED
+    rt.start("put the wine bottle on the plate", names)
+    first = rt.step(obs(1.0), None, frozenset())
+    assert first.instruction == "put the wine bottle on the rack"
+    grasped = rt.step(obs(0.0), ACT, frozenset(names[:2]))
+    assert grasped.instruction == "put the wine bottle on the rack", "the sub-goal runs until the bottle is lifted"
+    lifted = rt.step(obs(0.0), ACT, frozenset(names[:3]))
+    assert lifted.mode == "policy" and lifted.instruction == ""
+    (iv,) = rt.report.interventions
+    assert iv.outcome == "reentered" and iv.instruction == "put the wine bottle on the rack"
+    rt.policy_instructions = ()
+    rt.start("put the wine bottle on the plate", names)
+    assert rt.step(obs(1.0), None, frozenset()).instruction == "pick up the wine bottle"

@@ -139,7 +139,7 @@ class HarnessReport:
     recovery_actions: int
     actions_by_mode: dict[str, int]
     #: One dict per intervention: id, kind, proposer, evidence, details, decision, start_step,
-    #: end_step, outcome, actions.
+    #: end_step, outcome, actions, instruction (the policy's, when the recovery redirected it).
     interventions: list[dict[str, Any]]
     interventions_by_kind: dict[str, int]
     #: One dict per critic switched off: name, step, reason.
@@ -209,7 +209,7 @@ def _harness_report(m: types_pb2.HarnessReport | None) -> HarnessReport | None:
         interventions=[
             {"id": i.id, "kind": i.kind, "proposer": i.proposer, "evidence": i.evidence, "details": dict(i.details),
              "decision": i.decision, "start_step": i.start_step, "end_step": i.end_step, "outcome": i.outcome,
-             "actions": i.actions}
+             "actions": i.actions, "instruction": i.instruction}
             for i in m.interventions
         ],
         interventions_by_kind=dict(m.interventions_by_kind),

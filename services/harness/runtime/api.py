@@ -34,11 +34,17 @@ class Frame:
 
 @dataclass(frozen=True)
 class Window:
-    """The last frames of an episode, oldest first, plus the task knowledge critics may use."""
+    """The last frames of an episode, oldest first, plus the task knowledge critics may use.
+
+    ``policy_instructions``: the instructions the frozen policy was trained on (its model's
+    ListModels answer; empty when the model lists none or the policy has not been asked yet).
+    They describe the policy, not the scene: a recovery that redirects the policy asks it under one
+    of them, a sentence it knows, rather than one it never saw."""
 
     frames: Sequence[Frame]
     instruction: str
     milestone_names: Sequence[str]
+    policy_instructions: Sequence[str] = ()
 
     @property
     def now(self) -> Frame:

@@ -100,6 +100,8 @@ class Intervention:
     end_step: int = -1
     outcome: str = ""
     actions: int = 0
+    #: The instruction the policy acted under, when the recovery redirected it.
+    instruction: str = ""
 
 
 @dataclass(frozen=True)
@@ -298,6 +300,9 @@ class HarnessRuntime:
         self.limits = PlatformLimits.from_env()
         self.code_every = self.limits.code_critic_every
         self.code_pipelined = self.limits.code_critic_pipelined
+        #: What the frozen policy was trained on (Window.policy_instructions): the host sets it
+        #: once it knows the model that serves the episodes; it outlives episodes.
+        self.policy_instructions: tuple[str, ...] = ()
         self.budget_s = min(self.budget_s, self.limits.budget_s)
         self.hard_limit_s = min(self.hard_limit_s, self.limits.hard_limit_s)
         try:
@@ -423,7 +428,7 @@ class HarnessRuntime:
             self._perception = Perception(episode_seed(obs, self.instruction), self.noise)
         self._frames.append(Frame(self._step, signals.visible(obs, self.cameras), action, milestones,
                                   self._perception.sensor(obs)))
-        window = Window(tuple(self._frames), self.instruction, self.milestone_names)
+        window = Window(tuple(self._frames), self.instruction, self.milestone_names, self.policy_instructions)
         # Code critics: on the reset frame, at the platform's cadence and through an intervention
         # (its re-entry needs fresh evidence); the frames between reach their window regardless.
         # Under the policy the evaluation is pipelined (its proposals come with the next step).
@@ -595,6 +600,7 @@ class HarnessRuntime:
             try:
                 action = recovery.act(window)
                 if isinstance(action, PolicyUnder):
+                    iv.instruction = action.instruction
                     return action
                 if action is not None:
                     action = np.asarray(action, dtype=np.float64)

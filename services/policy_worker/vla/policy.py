@@ -84,6 +84,8 @@ class ZettaVLAPolicy:
         self.name = name
         self.chunk_size = self.cfg.chunk
         self.text = TextEncoder(cache)
+        #: The instructions it was trained on: the checkpoint carries their embeddings (ListModels).
+        self.instructions: tuple[str, ...] = tuple(sorted(cache))
         self.quantize = quantize
         self.quantized: list[str] = []
         if quantize:

@@ -378,12 +378,80 @@ def subgoal_instruction(milestone: str) -> str:
     return ""
 
 
+#: Words that end the object phrase of an instruction ("put the bowl | on the plate").
+_PHRASE_ENDS = frozenset({"on", "in", "into", "onto", "inside", "to", "of", "at", "and", "from", "under", "next",
+                          "over", "toward", "towards", "with"})
+#: The verbs a pick-and-place instruction starts with, and the milestone kinds each can serve.
+_PICK_KINDS = frozenset({"reached", "grasped", "lifted"})
+_PLACE_KINDS = frozenset({"above", "on", "in", "released"})
+
+
+def _parse(sentence: str) -> tuple[str, list[str], list[str]]:
+    """An instruction's verb, the words of the object it acts on and the words after them:
+    ``put the wine bottle on top of the cabinet`` -> ``put``, ``[wine, bottle]``,
+    ``[on, top, of, the, cabinet]``."""
+    words = sentence.lower().replace(",", " ").split()
+    verb_len = 2 if words[:2] in (["pick", "up"], ["turn", "on"], ["turn", "off"]) else 1
+    verb, rest = " ".join(words[:verb_len]), words[verb_len:]
+    if rest[:1] == ["the"]:
+        rest = rest[1:]
+    cut = next((i for i, w in enumerate(rest) if w in _PHRASE_ENDS), len(rest))
+    return verb, rest[:cut], rest[cut:]
+
+
+def _milestone_args(milestone: str) -> tuple[str, list[list[str]]]:
+    kind, _, rest = milestone.split("#")[0].partition("(")
+    return kind.strip(), [_words(a).split() for a in rest.rstrip(")").split(",") if a]
+
+
+def policy_instruction(milestone: str, known: Sequence[str], episode_instruction: str = "") -> str:
+    """The instruction the policy was trained on (one of ``known``) that serves the sub-goal a
+    milestone names, "" when none does. A pick sub-goal (reached, grasped, lifted) is served by a
+    pick-and-place instruction on the same object (``lifted(wine_bottle_1)``: ``put the wine bottle
+    on top of the cabinet``; the redirection ends once the object is lifted, before the trained
+    placement); a placement (above, on, in, released) by one on the same object and target; an
+    articulation (open, close, turnon, turnoff) by one with the same verb that shares the most words
+    with the fixture, its object phrase counting double. Ties go to the sentence sharing more words
+    with the episode's own instruction, then to the first in order."""
+    kind, args = _milestone_args(milestone)
+    if not args or not known:
+        return ""
+    goal = set(episode_instruction.lower().split())
+    scored: list[tuple[int, int, str]] = []
+    for sentence in known:
+        if not sentence.strip():
+            continue
+        verb, obj, after = _parse(sentence)
+        if kind in _PICK_KINDS | _PLACE_KINDS:
+            if verb not in ("put", "place", "pick up") or not obj or obj[-1] != args[0][-1] or not set(obj) <= set(args[0]):
+                continue
+            if kind in _PLACE_KINDS:
+                if len(args) < 2 or not set(args[1]) & set(after):
+                    continue
+            score = 0
+        elif kind in ("open", "close", "turnon", "turnoff"):
+            if verb != {"turnon": "turn on", "turnoff": "turn off"}.get(kind, kind):
+                continue
+            score = 2 * len(set(args[0]) & set(obj)) + len(set(args[0]) & set(after))
+            if score == 0:
+                continue
+        else:
+            continue
+        scored.append((score, len(goal & set(sentence.lower().split())), sentence))
+    if not scored:
+        return ""
+    best = max(s[:2] for s in scored)
+    return next(s for *key, s in scored if tuple(key) == best)
+
+
 class RedirectInstruction(Recovery):
     """Instruction redirection: the frozen policy keeps acting, under the instruction of the
-    sub-goal the first missing milestone that names one gives (``pick up the bowl`` while the bowl
-    is not lifted, ``open the top drawer`` while it is shut), for at most ``steps`` steps. Done
-    when the last milestone of that sub-goal is reached; fails when no missing milestone names a
-    sub-goal or the steps run out.
+    sub-goal the first missing milestone that names one gives, for at most ``steps`` steps. The
+    instruction is one the policy was trained on when one serves the sub-goal
+    (:func:`policy_instruction`: ``put the wine bottle on top of the cabinet`` while the bottle is
+    not lifted), else the sub-goal's own words (``pick up the wine bottle``). Done when the last
+    milestone of that sub-goal is reached; fails when no missing milestone names a sub-goal or the
+    steps run out.
     The policy does the work it can do; the harness only chooses what it is asked."""
 
     name = "redirect_instruction"
@@ -392,12 +460,15 @@ class RedirectInstruction(Recovery):
         super().start(w, memory)
         missing = [m for m in w.milestone_names if m not in w.now.milestones]
         first = next((i for i, m in enumerate(missing) if subgoal_instruction(m)), -1)
-        self.instruction = subgoal_instruction(missing[first]) if first >= 0 else ""
+        self.instruction = ""
+        if first >= 0:
+            self.instruction = (policy_instruction(missing[first], w.policy_instructions, w.instruction)
+                                or subgoal_instruction(missing[first]))
         self.goal = missing[first] if first >= 0 else (missing[0] if missing else "")
         # The sub-goal is done at the last milestone of the run that shares its instruction
         # (reached, grasped, lifted: "pick up the bowl" is done once the bowl is lifted).
         for m in missing[first + 1:] if first >= 0 else ():
-            if subgoal_instruction(m) != self.instruction:
+            if subgoal_instruction(m) != subgoal_instruction(missing[first]):
                 break
             self.goal = m
         self._left = int(self.p["steps"])
