@@ -4,7 +4,9 @@ A success the recoveries carried is not a success of the policy. Every arm of a 
 (the bare policy, the harness, the harness around a do-nothing policy) reports, besides its success
 rate with a Wilson 95 % interval, the share of actions recoveries took over its successful
 episodes and the share of its successes in which the policy was in control at the success step
-(no intervention still in control when the episode ended: ``in_control_at_success``).
+(no intervention still in control when the episode ended: ``in_control_at_success``). Actions
+the policy took while a recovery redirected it count as the recovery's; ``redirected_share`` says
+how many of them there were.
 """
 
 from __future__ import annotations
@@ -24,6 +26,11 @@ def policy_in_control_at_success(store: RolloutStore, rollout: Rollout) -> bool:
     return not any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in store.trace(rollout).interventions)
 
 
+def redirected_actions(store: RolloutStore, rollout: Rollout) -> int:
+    """Actions the policy took under a redirected instruction (interventions that record one)."""
+    return sum(int(iv.get("actions", 0)) for iv in store.trace(rollout).interventions if iv.get("instruction"))
+
+
 def arm(store: RolloutStore, rollouts: Sequence[Rollout]) -> dict[str, Any]:
     """One arm's numbers, JSON-ready."""
     n = len(rollouts)
@@ -32,9 +39,11 @@ def arm(store: RolloutStore, rollouts: Sequence[Rollout]) -> dict[str, Any]:
     actions = sum(r.policy_steps + r.recovery_steps for r in wins)
     in_control = sum(policy_in_control_at_success(store, r) for r in wins if r.interventions)
     in_control += sum(1 for r in wins if not r.interventions)
+    redirected = sum(redirected_actions(store, r) for r in wins if r.interventions)
     return {
         "successes": len(wins), "episodes": n, "rate": len(wins) / n if n else 0.0, "wilson95": [lo, hi],
         "seeds": sorted(r.seed for r in rollouts),
         "recovery_share": sum(r.recovery_steps for r in wins) / actions if actions else 0.0,
+        "redirected_share": redirected / actions if actions else 0.0,
         "policy_in_control_at_success": in_control / len(wins) if wins else 0.0,
     }

@@ -225,8 +225,11 @@ def _suite_tables(data: Mapping[str, Any]) -> list[str]:
                   "|---|---|---|---|---|---|---|---|"]
         for t in body["tasks"]:
             f = t["arms"]["final"]
+            recoveries = f"{f['recovery_share']:.0%}"
+            if f.get("redirected_share"):
+                recoveries += f" ({f['redirected_share']:.0%} redirected)"
             lines.append(f"| {t['task']} | {_arm_cells(t['arms'])} | "
-                         f"{f['recovery_share']:.0%} | {f['policy_in_control_at_success']:.0%} | {t['harness']} |")
+                         f"{recoveries} | {f['policy_in_control_at_success']:.0%} | {t['harness']} |")
         m = body["mean"]
         lines += [f"| **mean** | {m['bare']:.1%} | {m['final']:.1%} | {m['final'] - m['bare']:+.1%} | "
                   f"{m['control']:.1%} | | | |", "",
@@ -393,7 +396,8 @@ def render(data: Mapping[str, Any]) -> str:
              *render_goals(data),
              "Test seeds only (no decision read them). *harness + nothing*: the same harness around a policy "
              "that outputs zero actions. *recoveries*: share of actions taken by recoveries over the successful "
-             "harness episodes; *policy at success*: share of those successes with the policy in control at the "
+             "harness episodes, the policy's actions under a redirected instruction included (their share in "
+             "parentheses); *policy at success*: share of those successes with the policy in control at the "
              "success step.", ""]
     lines += [*_suite_tables(data), *_transfer_table(data), *render_splits(data), *render_history(data),
               *render_curves(data), *render_rollouts(data)]
