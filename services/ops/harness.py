@@ -174,14 +174,16 @@ class Proposal:
 
 @dataclass(frozen=True)
 class Decision:
-    """The orchestrator's answer to one step: the mode in control, every proposal, and the
-    recovery's action when a recovery is in control."""
+    """The orchestrator's answer to one step: the mode in control, every proposal, the
+    recovery's action when a recovery is in control, and the instruction to run the policy under
+    when a recovery redirects it (``action`` None then)."""
 
     step: int
     mode: str
     proposals: list[Proposal]
     action: np.ndarray | None
     intervention_id: str
+    instruction: str = ""
 
 
 class Evaluation:
@@ -190,12 +192,13 @@ class Evaluation:
     Use ``async with evaluate(...) as ev`` so the stream is closed when the episode ends."""
 
     def __init__(self, address: str, harness: str, instruction: str, milestone_names: Sequence[str], task: str,
-                 credentials: ClientCredentials | None = None) -> None:
+                 credentials: ClientCredentials | None = None, policy_instructions: Sequence[str] = ()) -> None:
         creds = credentials if credentials is not None else ClientCredentials.from_env()
         self._channel = creds.aio_channel(address, CHANNEL_OPTIONS)
         self._call = critic_pb2_grpc.CriticServiceStub(self._channel).Evaluate()
         self._start = critic_pb2.EvaluateStart(
-            harness=harness, task=task, instruction=instruction, milestone_names=list(milestone_names)
+            harness=harness, task=task, instruction=instruction, milestone_names=list(milestone_names),
+            policy_instructions=list(policy_instructions),
         )
         self.manifest: Manifest | None = None
 
@@ -231,6 +234,7 @@ class Evaluation:
             proposals=[Proposal(p.critic, p.evidence, p.suggested_mode, dict(p.details)) for p in d.proposals],
             action=decode(d.action) if d.HasField("action") else None,
             intervention_id=d.intervention_id,
+            instruction=d.instruction,
         )
 
     async def finish(self, success: bool) -> types_pb2.HarnessReport:
@@ -259,10 +263,12 @@ class Evaluation:
 
 def evaluate(
     harness: str, instruction: str, milestone_names: Sequence[str] = (), task: str = "", address: str | None = None,
-    credentials: ClientCredentials | None = None,
+    credentials: ClientCredentials | None = None, policy_instructions: Sequence[str] = (),
 ) -> Evaluation:
-    """An Evaluate stream for one episode of ``harness`` (a reference; empty uses ``task``'s pin)."""
-    return Evaluation(address or default_address(), harness, instruction, milestone_names, task, credentials)
+    """An Evaluate stream for one episode of ``harness`` (a reference; empty uses ``task``'s pin).
+    ``policy_instructions``: what your policy was trained on, so a redirection asks it under one."""
+    return Evaluation(address or default_address(), harness, instruction, milestone_names, task, credentials,
+                      policy_instructions)
 
 
 # ---- command line -----------------------------------------------------------------------------

@@ -197,6 +197,28 @@ async def test_evaluate_runs_one_episode_decision_by_decision(reg: zh.HarnessReg
     assert report.proposals == 2 and not report.disabled_critics
 
 
+async def test_evaluate_redirects_the_policy_under_an_instruction_it_was_trained_on(
+        reg: zh.HarnessRegistry, stack: LocalStack) -> None:
+    """A redirection on the Evaluate stream names one of the client's ``policy_instructions`` that
+    serves the sub-goal; without them, the sub-goal's own words."""
+    files = example_files(name="evaluated-redirect")
+    files["plans/recoveries.toml"] = b'[hold]\nrecovery = "redirect_instruction"\nparams = { steps = 5 }\nmax_steps = 20\n'
+    reg.publish(files)
+    names = ["reached(cream_cheese_1)", "grasped(cream_cheese_1)", "lifted(cream_cheese_1)", "in(cream_cheese_1,bowl_1)"]
+    action = np.zeros(7, dtype=np.float64)
+    for trained, expected in ((["put the cream cheese in the bowl", "turn on the stove"], "put the cream cheese in the bowl"),
+                              ([], "pick up the cream cheese")):
+        async with zh.evaluate("evaluated-redirect@1", "put the cream cheese on the plate", names,
+                               address=stack.critic_address, policy_instructions=trained) as ev:
+            decisions = [await ev.step(far(0.1), None)]
+            for _ in range(5):
+                decisions.append(await ev.step(far(0.9), action))
+            report = await ev.finish(success=False)
+        assert decisions[5].mode == "hold" and decisions[5].action is None
+        assert decisions[5].instruction == expected
+        assert report.interventions[0].instruction == expected
+
+
 async def test_evaluate_uses_the_task_pin(reg: zh.HarnessRegistry, stack: LocalStack) -> None:
     reg.publish(example_files(name="pinned-eval"))
     v2, _ = reg.publish(example_files(name="pinned-eval", radius=2.0))
