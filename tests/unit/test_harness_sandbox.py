@@ -65,6 +65,34 @@ def test_critics_and_a_package_recovery_run_in_the_sandbox(runtimes) -> None:
     assert rt.report.recovery_actions >= 3
 
 
+KNOWN = """
+from services.harness.runtime.api import Proposal
+
+
+def critic_known(window, params):
+    return Proposal("known.count", "known", "", {"n": float(len(window.policy_instructions))})
+"""
+
+
+def test_package_code_sees_the_policys_instructions_from_when_the_host_learns_them(runtimes) -> None:
+    """Learned mid-episode (the env worker asks the model at the first policy call), the trained
+    instructions reach the child's windows at once, and stay through the next episode and a respawn."""
+    rt = HarnessRuntime(sandboxed(RULE, extra={"known": KNOWN}))
+    runtimes.append(rt)
+    rt.start("task", [])
+
+    def seen(decision) -> float:
+        return next(p.details["n"] for p in decision.proposals if p.evidence == "known")
+
+    assert seen(rt.step(obs(0.0), None, frozenset())) == 0.0
+    rt.policy_instructions = ("put the bowl on the plate", "turn on the stove")
+    assert seen(rt.step(obs(0.0), ACT, frozenset())) == 2.0
+    rt.start("task", [])
+    assert seen(rt.step(obs(0.0), None, frozenset())) == 2.0
+    rt.sandbox.close()  # killed: respawned at the next step, started with what the host knows
+    assert seen(rt.step(obs(0.0), ACT, frozenset())) == 2.0
+
+
 def test_bad_critics_are_switched_off_and_a_runaway_is_killed_at_the_hard_limit(runtimes) -> None:
     rt = HarnessRuntime(sandboxed({**RULE, "runtime": {"critic_budget_ms": 5.0, "critic_hard_limit_ms": 300.0}},
                                   extra={"bad": BAD}))

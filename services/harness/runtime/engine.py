@@ -300,9 +300,7 @@ class HarnessRuntime:
         self.limits = PlatformLimits.from_env()
         self.code_every = self.limits.code_critic_every
         self.code_pipelined = self.limits.code_critic_pipelined
-        #: What the frozen policy was trained on (Window.policy_instructions): the host sets it
-        #: once it knows the model that serves the episodes; it outlives episodes.
-        self.policy_instructions: tuple[str, ...] = ()
+        self._policy_instructions: tuple[str, ...] = ()
         self.budget_s = min(self.budget_s, self.limits.budget_s)
         self.hard_limit_s = min(self.hard_limit_s, self.limits.hard_limit_s)
         try:
@@ -373,6 +371,20 @@ class HarnessRuntime:
                 raise HarnessError(f"adjudication rule for {rule.evidence!r} grants mode {rule.mode!r}, which no plan defines")
         self.orchestrator = Orchestrator(rules)
 
+    @property
+    def policy_instructions(self) -> tuple[str, ...]:
+        """What the frozen policy was trained on (Window.policy_instructions): the host sets it
+        once it knows the model that serves the episodes; it outlives episodes."""
+        return self._policy_instructions
+
+    @policy_instructions.setter
+    def policy_instructions(self, instructions: Sequence[str]) -> None:
+        instructions = tuple(instructions)
+        if instructions != self._policy_instructions:
+            self._policy_instructions = instructions
+            if self._code is not None:
+                self._code.set_policy_instructions(instructions)
+
     # ---- episode lifecycle -------------------------------------------------------------------
 
     def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
@@ -385,7 +397,7 @@ class HarnessRuntime:
             for n, fn, b, code in self._critic_defs
         ]
         if self._code is not None:
-            self._code.start(instruction, self.milestone_names)
+            self._code.start(instruction, self.milestone_names, self._policy_instructions)
         self._frames: deque[Frame] = deque(maxlen=self.window_size)
         self._memory = EpisodeMemory()
         self._uses: Counter[str] = Counter()

@@ -245,6 +245,7 @@ class Host:
         self.window: deque[Any] = deque(maxlen=32)
         self.instruction = ""
         self.milestone_names: tuple[str, ...] = ()
+        self.policy_instructions: tuple[str, ...] = ()
         self.memory = EpisodeMemory()
         self.recovery: Any = None
         self.frames = codec.FrameDecoder()
@@ -262,7 +263,7 @@ class Host:
         handlers: dict[int, Callable[[memoryview], bytes]] = {
             codec.INIT: self.init, codec.START: self.start, codec.STEP: self.step, codec.PUSH: self.push,
             codec.REC_START: self.rec_start, codec.REC_ACT: self.rec_act, codec.CHECK: self.check,
-            codec.LAYOUT: self.layout,
+            codec.LAYOUT: self.layout, codec.POLICY: self.policy,
         }
         while True:
             kind, body = self.chan.recv()
@@ -313,8 +314,8 @@ class Host:
     def start(self, body: memoryview) -> bytes:
         from services.harness.runtime.library import EpisodeMemory
 
-        instruction, names = pickle.loads(body)
-        self.instruction, self.milestone_names = instruction, tuple(names)
+        instruction, names, policy = pickle.loads(body)
+        self.instruction, self.milestone_names, self.policy_instructions = instruction, tuple(names), tuple(policy)
         self.window.clear()
         self.memory = EpisodeMemory()
         self.recovery = None
@@ -393,8 +394,13 @@ class Host:
             query = r.text()
             cache[query] = codec.decode_detections(r, Detection)
 
+    def policy(self, body: memoryview) -> bytes:
+        """The instructions the policy was trained on, learned during the episode (no reply)."""
+        self.policy_instructions = tuple(str(s) for s in pickle.loads(body))
+        return b""
+
     def _window(self) -> Any:
-        return self._Window(tuple(self.window), self.instruction, self.milestone_names)
+        return self._Window(tuple(self.window), self.instruction, self.milestone_names, self.policy_instructions)
 
     def step(self, body: memoryview) -> bytes:
         Proposal = self._Proposal

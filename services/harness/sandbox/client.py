@@ -477,8 +477,13 @@ class SandboxClient:
             raise CallFailed(_error_text(kind, r))
         return Loaded(tuple(r.texts()), frozenset(r.texts(1 << 16)))
 
-    def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
-        self._send(codec.frame(codec.START, pickle.dumps((instruction, tuple(milestone_names)))))
+    def start(self, instruction: str, milestone_names: Sequence[str], policy_instructions: Sequence[str] = ()) -> None:
+        self._send(codec.frame(codec.START, pickle.dumps((instruction, tuple(milestone_names),
+                                                          tuple(policy_instructions)))))
+
+    def set_policy_instructions(self, instructions: Sequence[str]) -> None:
+        """What the policy was trained on, learned during an episode (no reply)."""
+        self._send(codec.frame(codec.POLICY, pickle.dumps(tuple(instructions))))
 
     def push_message(self, step: int, obs: Mapping[str, np.ndarray], action: np.ndarray | None,
                      milestones: frozenset[str], prefetched: Sequence[tuple[str, Any]] = ()) -> bytes:

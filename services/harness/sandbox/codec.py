@@ -21,7 +21,7 @@ import numpy as np
 
 # Parent -> child.
 INIT = 1        # pickled set-up: package files or sources, params, window size, whether to check
-START = 2       # pickled: instruction, milestone names (a new episode)
+START = 2       # pickled: instruction, milestone names, policy instructions (a new episode)
 STEP = 3        # a frame, then the indices of the critics to run (evaluate)
 PUSH = 4        # a frame only, with perception answers: the steps since the last call (or a respawned child's window)
 REC_START = 5   # start a package recovery: its mode, "<stem>:<factory>" and pickled params
@@ -29,6 +29,7 @@ REC_ACT = 6     # the active package recovery's next action
 PERCEPT = 7     # the answer to a perception query
 CHECK = 8       # pickled files: load and build a runtime inside the sandbox (publish-time probe)
 LAYOUT = 9      # pickled [(name, dtype string, shape)]: how the observation blocks that follow are laid out
+POLICY = 10     # pickled: the instructions the policy was trained on (Window.policy_instructions), no reply
 # Child -> parent.
 READY = 20      # isolation report after start-up
 LOADED = 21     # critic names and module-level callables, or an error

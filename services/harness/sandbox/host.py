@@ -45,7 +45,7 @@ class SandboxedCode:
         self._checked = checked
         self.limits = limits or SandboxLimits.from_env()
         self._client: SandboxClient | None = None
-        self._episode: tuple[str, tuple[str, ...]] = ("", ())
+        self._episode: tuple[str, tuple[str, ...], tuple[str, ...]] = ("", (), ())
         #: The step of the newest frame the child has (-1: none of this episode's).
         self._sent = -1
         #: A step sent and not collected yet: its perception server, hard limits and cap.
@@ -83,14 +83,24 @@ class SandboxedCode:
             self._client.close()
             self._client = None
 
-    def start(self, instruction: str, milestone_names: Sequence[str]) -> None:
-        self._episode = (instruction, tuple(milestone_names))
+    def start(self, instruction: str, milestone_names: Sequence[str], policy_instructions: Sequence[str] = ()) -> None:
+        self._episode = (instruction, tuple(milestone_names), tuple(policy_instructions))
         self._sent = -1
         try:
             self._drain()  # the last episode's step still in flight: its answer is of no use now
             if self._client is None or self._client.dead:
                 return  # respawned (and started) at the next step
             self._client.start(*self._episode)
+        except (SandboxError, CallFailed):
+            self.close()
+
+    def set_policy_instructions(self, instructions: Sequence[str]) -> None:
+        """What the policy was trained on, learned during the episode: the child's windows carry it
+        from now on (a respawned child gets it with the episode's start)."""
+        self._episode = (self._episode[0], self._episode[1], tuple(instructions))
+        try:
+            if self._client is not None and not self._client.dead:
+                self._client.set_policy_instructions(instructions)
         except (SandboxError, CallFailed):
             self.close()
 
