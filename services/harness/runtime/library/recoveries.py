@@ -381,7 +381,7 @@ def subgoal_instruction(milestone: str) -> str:
 #: Words that end the object phrase of an instruction ("put the bowl | on the plate").
 _PHRASE_ENDS = frozenset({"on", "in", "into", "onto", "inside", "to", "of", "at", "and", "from", "under", "next",
                           "over", "toward", "towards", "with"})
-#: The verbs a pick-and-place instruction starts with, and the milestone kinds each can serve.
+#: Milestone kinds of a pick sub-goal and of a placement.
 _PICK_KINDS = frozenset({"reached", "grasped", "lifted"})
 _PLACE_KINDS = frozenset({"above", "on", "in", "released"})
 
@@ -408,8 +408,7 @@ def policy_instruction(milestone: str, known: Sequence[str], episode_instruction
     """The instruction the policy was trained on (one of ``known``) that serves the sub-goal a
     milestone names, "" when none does. A pick sub-goal (reached, grasped, lifted) is served by a
     pick-and-place instruction on the same object (``lifted(wine_bottle_1)``: ``put the wine bottle
-    on top of the cabinet``; the redirection ends once the object is lifted, before the trained
-    placement); a placement (above, on, in, released) by one on the same object and target; an
+    on the rack``; the redirection ends once the object is lifted, before the trained placement); a placement (above, on, in, released) by one on the same object and target; an
     articulation (open, close, turnon, turnoff) by one with the same verb that shares the most words
     with the fixture, its object phrase counting double. Ties go to the sentence sharing more words
     with the episode's own instruction, then to the first in order."""
