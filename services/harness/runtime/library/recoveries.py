@@ -447,7 +447,7 @@ class RedirectInstruction(Recovery):
     """Instruction redirection: the frozen policy keeps acting, under the instruction of the
     sub-goal the first missing milestone that names one gives, for at most ``steps`` steps. The
     instruction is one the policy was trained on when one serves the sub-goal
-    (:func:`policy_instruction`: ``put the wine bottle on top of the cabinet`` while the bottle is
+    (:func:`policy_instruction`: ``put the wine bottle on the rack`` while the bottle is
     not lifted), else the sub-goal's own words (``pick up the wine bottle``). Done when the last
     milestone of that sub-goal is reached; fails when no missing milestone names a sub-goal or the
     steps run out.
