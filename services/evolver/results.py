@@ -150,11 +150,14 @@ def _control_goal(data: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _recovery_goal(data: Mapping[str, Any]) -> dict[str, Any]:
-    """The recoveries' share of actions over successful test episodes <= 30 % on every task."""
-    rows = [(f"{s}/{t['task']}", t["arms"]) for s, body in data.get("suites", {}).items()
-            for t in body.get("tasks", []) if t["arms"]["final"]["successes"]]
+    """The recoveries' share of actions over successful test episodes <= 30 % on every task with an
+    admitted harness (a bare row has no recoveries: it says nothing about the goal)."""
+    evolved = [(s, t) for s, body in data.get("suites", {}).items() for t in body.get("tasks", [])
+               if t["harness"] != "bare"]
+    rows = [(f"{s}/{t['task']}", t["arms"]) for s, t in evolved if t["arms"]["final"]["successes"]]
     worst = _worst(rows, "final", "recovery_share")
-    detail = f"largest: {worst[1]}" if worst else "no successful test episode"
+    detail = (f"largest: {worst[1]}" if worst else
+              "no successful test episode of an admitted harness" if evolved else "no harness was admitted")
     return _goal("recoveries' share of actions over successful test episodes", MAX_RECOVERY_SHARE, False,
                  worst[0] if worst else None, detail)
 

@@ -76,6 +76,22 @@ def test_results_file_holds_provenance_splits_arms_and_means_and_renders_the_tab
     assert gain["value"] == pytest.approx(0.35)  # both transfer suites' rows: (5 + 7 - 3 - 2) / 20
 
 
+def test_goals_about_harnesses_are_not_measured_when_none_was_admitted() -> None:
+    """A bare row has no recoveries and no control: with nothing admitted, the control, recoveries
+    and transfer goals say "not measured", never "met"."""
+    seeds = list(range(1, 21))
+    arms = {"bare": _arm(2, 20, seeds), "final": _arm(2, 20, seeds), "control": _arm(0, 20, seeds)}
+    data = {"suites": {"libero_goal_task": {"tasks": [{"task": "7", "harness": "bare", "arms": arms}],
+                                            "mean": {"bare": 0.1, "final": 0.1, "control": 0.0}}}, "transfer": []}
+    by_goal = {g["goal"]: g for g in results.goals(data)}
+    for goal in ("do-nothing control of every admitted harness",
+                 "recoveries' share of actions over successful test episodes",
+                 "zero-shot transfer gain over the bare policy"):
+        assert by_goal[goal]["value"] is None and by_goal[goal]["gap"] is None, goal
+    assert by_goal["recoveries' share of actions over successful test episodes"]["detail"] == "no harness was admitted"
+    assert by_goal["harness mean test success, libero_goal_task (Goal-T)"]["value"] == pytest.approx(0.1)
+
+
 def test_the_published_page_is_generated_from_the_results_file() -> None:
     """docs/results/evolution.md: the common generated head (command, commit) above the tables."""
     data = {"schema": 1, "policy": {"model": "m"}, "source": {"commit": "c0ffee", "dirty": False},
