@@ -41,7 +41,7 @@ from services.env_worker.families.options import (
     check_keys,
     int_option,
 )
-from services.env_worker.families.pool import EnvPool
+from services.env_worker.families.pool import EnvPool, IdleBudget
 from services.env_worker.families.registry import register_family
 from services.env_worker.families.schema import OSC_POSE_ACTION, manipulation_schema, zero_padded
 from services.env_worker.rendering import select_gl_backend
@@ -79,10 +79,11 @@ _FIXTURE_POSE_FIELDS = ("body_pos", "body_quat")
 LIBERO_CAMERAS = (
     "agentview", "robot0_eye_in_hand", "frontview", "birdview", "sideview", "galleryview", "robot0_robotview",
 )
-#: Idle environments a LIBERO group keeps warm across its tasks (each holds about 0.4 GB: a private
-#: model copy and a render context with the scene's textures); enough for a worker's slots to come
-#: back to one task, bounded when a run walks through many.
+#: Idle environments a worker keeps warm across its tasks, all LIBERO groups together (each holds
+#: about 0.4 GB: a private model copy and a render context with the scene's textures); enough for a
+#: worker's slots to come back to one task, bounded when a run walks through many tasks and suites.
 IDLE_ENVS = 8
+_IDLE_BUDGET = IdleBudget(IDLE_ENVS)
 #: LIBERO's evaluation budgets by suite family (the token after "libero_").
 _DEFAULT_MAX_STEPS = {"spatial": 220, "object": 280, "goal": 300, "10": 520, "90": 400}
 #: LIBERO-PRO perturbations (suite name suffixes): task redirection (the paper's T), position swap
@@ -155,7 +156,7 @@ class LiberoFamily(PooledGroup, EnvFamily):
         self._init_states: dict[int, np.ndarray] = {}
         self._lock = threading.Lock()
         self._models = CompiledModels(mutable=_FIXTURE_POSE_FIELDS)
-        self._pool: EnvPool[Any] = EnvPool(max_idle=IDLE_ENVS)
+        self._pool: EnvPool[Any] = EnvPool(budget=_IDLE_BUDGET)
         #: Settled states of the group's keys, restored on whichever env resets the key next.
         self.settled = settled.Store()
         self._schema = manipulation_schema(
@@ -255,8 +256,8 @@ class LiberoFamily(PooledGroup, EnvFamily):
         return self._pool.acquire(index, functools.partial(self._build, index))
 
     def park(self, index: int, env: Any) -> None:
-        """Keep a slot's env of task ``index`` warm for the next slot that needs it (the group keeps
-        at most ``IDLE_ENVS``; the one parked longest ago is closed)."""
+        """Keep a slot's env of task ``index`` warm for the next slot that needs it (the worker's
+        LIBERO groups keep at most ``IDLE_ENVS`` together; the one parked longest ago is closed)."""
         for old in self._pool.release(index, env):
             retire_env(old)
 
