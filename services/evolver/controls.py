@@ -11,7 +11,7 @@ how many of them there were.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from services.evolver.store import Rollout, RolloutStore
@@ -21,25 +21,26 @@ from zetta_wire.stats import wilson
 IN_CONTROL_AT_SUCCESS = "in_control_at_success"
 
 
-def policy_in_control_at_success(store: RolloutStore, rollout: Rollout) -> bool:
+def policy_in_control_at_success(interventions: Sequence[Mapping[str, Any]]) -> bool:
     """Whether the policy, not a recovery, was in control when the episode succeeded."""
-    return not any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in store.trace(rollout).interventions)
+    return not any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in interventions)
 
 
-def redirected_actions(store: RolloutStore, rollout: Rollout) -> int:
+def redirected_actions(interventions: Sequence[Mapping[str, Any]]) -> int:
     """Actions the policy took under a redirected instruction (interventions that record one)."""
-    return sum(int(iv.get("actions", 0)) for iv in store.trace(rollout).interventions if iv.get("instruction"))
+    return sum(int(iv.get("actions", 0)) for iv in interventions if iv.get("instruction"))
 
 
 def arm(store: RolloutStore, rollouts: Sequence[Rollout]) -> dict[str, Any]:
-    """One arm's numbers, JSON-ready."""
+    """One arm's numbers, JSON-ready (each successful episode's trace is read once, when it had
+    interventions)."""
     n = len(rollouts)
     wins = [r for r in rollouts if r.success]
     lo, hi = wilson(len(wins), n)
     actions = sum(r.policy_steps + r.recovery_steps for r in wins)
-    in_control = sum(policy_in_control_at_success(store, r) for r in wins if r.interventions)
-    in_control += sum(1 for r in wins if not r.interventions)
-    redirected = sum(redirected_actions(store, r) for r in wins if r.interventions)
+    recorded = [store.trace(r).interventions for r in wins if r.interventions]
+    in_control = sum(policy_in_control_at_success(ivs) for ivs in recorded) + len(wins) - len(recorded)
+    redirected = sum(redirected_actions(ivs) for ivs in recorded)
     return {
         "successes": len(wins), "episodes": n, "rate": len(wins) / n if n else 0.0, "wilson95": [lo, hi],
         "seeds": sorted(r.seed for r in rollouts),
