@@ -355,16 +355,20 @@ def _words(name: str) -> str:
     return " ".join(parts)
 
 
+def _milestone_parts(milestone: str) -> tuple[str, list[str]]:
+    """A milestone's kind and raw arguments: ``in(bowl_1,plate_1)#2`` -> ``in``, ``[bowl_1, plate_1]``."""
+    kind, _, rest = milestone.split("#")[0].partition("(")
+    return kind.strip(), [a for a in rest.rstrip(")").split(",") if a]
+
+
 def subgoal_instruction(milestone: str) -> str:
     """The instruction of the sub-goal a milestone names ("" when it names none the policy knows):
     ``grasped(cream_cheese_1)`` -> ``pick up the cream cheese``, ``open(wooden_cabinet_1_top_region)``
     -> ``open the wooden cabinet top``, ``in(bowl_1,plate_1)`` -> ``put the bowl in the plate``."""
-    kind, _, rest = milestone.split("#")[0].partition("(")
-    raw = [a for a in rest.rstrip(")").split(",") if a]
+    kind, raw = _milestone_parts(milestone)
     if not raw or raw[0].endswith(".handle"):
         return ""  # reached(r.handle): a handle is not something the policy is asked to pick up
     args = [_words(a) for a in raw]
-    kind = kind.strip()
     if kind in ("reached", "grasped", "lifted"):
         return f"pick up the {args[0]}"
     if kind in ("above", "on", "released") and len(args) == 2:
@@ -384,6 +388,7 @@ _PHRASE_ENDS = frozenset({"on", "in", "into", "onto", "inside", "to", "of", "at"
 #: Milestone kinds of a pick sub-goal and of a placement.
 _PICK_KINDS = frozenset({"reached", "grasped", "lifted"})
 _PLACE_KINDS = frozenset({"above", "on", "in", "released"})
+_PICK_PLACE_KINDS = _PICK_KINDS | _PLACE_KINDS
 
 
 def _parse(sentence: str) -> tuple[str, list[str], list[str]]:
@@ -399,20 +404,17 @@ def _parse(sentence: str) -> tuple[str, list[str], list[str]]:
     return verb, rest[:cut], rest[cut:]
 
 
-def _milestone_args(milestone: str) -> tuple[str, list[list[str]]]:
-    kind, _, rest = milestone.split("#")[0].partition("(")
-    return kind.strip(), [_words(a).split() for a in rest.rstrip(")").split(",") if a]
-
-
 def policy_instruction(milestone: str, known: Sequence[str], episode_instruction: str = "") -> str:
     """The instruction the policy was trained on (one of ``known``) that serves the sub-goal a
     milestone names, "" when none does. A pick sub-goal (reached, grasped, lifted) is served by a
     pick-and-place instruction on the same object (``lifted(wine_bottle_1)``: ``put the wine bottle
-    on the rack``; the redirection ends once the object is lifted, before the trained placement); a placement (above, on, in, released) by one on the same object and target; an
-    articulation (open, close, turnon, turnoff) by one with the same verb that shares the most words
-    with the fixture, its object phrase counting double. Ties go to the sentence sharing more words
-    with the episode's own instruction, then to the first in order."""
-    kind, args = _milestone_args(milestone)
+    on the rack``; the redirection ends once the object is lifted, before the trained placement); a
+    placement (above, on, in, released) by one on the same object and target; an articulation
+    (open, close, turnon, turnoff) by one with the same verb that shares the most words with the
+    fixture, its object phrase counting double. Ties go to the sentence sharing more words with the
+    episode's own instruction, then to the first in order."""
+    kind, raw = _milestone_parts(milestone)
+    args = [_words(a).split() for a in raw]
     if not args or not known:
         return ""
     goal = set(episode_instruction.lower().split())
@@ -421,7 +423,7 @@ def policy_instruction(milestone: str, known: Sequence[str], episode_instruction
         if not sentence.strip():
             continue
         verb, obj, after = _parse(sentence)
-        if kind in _PICK_KINDS | _PLACE_KINDS:
+        if kind in _PICK_PLACE_KINDS:
             if verb not in ("put", "place", "pick up") or not obj or obj[-1] != args[0][-1] or not set(obj) <= set(args[0]):
                 continue
             if kind in _PLACE_KINDS:
