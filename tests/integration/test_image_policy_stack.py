@@ -9,6 +9,7 @@ shipped checkpoint's success is measured by `zetta eval-policy`, docs/results/vl
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import grpc
 import numpy as np
@@ -41,19 +42,25 @@ def tiny_image_checkpoint(tmp: Path) -> Path:
     return out
 
 
-async def test_frames_flow_through_the_stack_and_a_wrong_size_is_refused(stack_factory, tmp_path) -> None:
+def image_stack(stack_factory, tmp: Path, slots: int) -> tuple[Any, dict[str, Any]]:
+    """A one-worker LIBERO stack serving the tiny image checkpoint, and the env config whose camera
+    it reads. A loose heartbeat budget: these tests are about frames and instructions, not
+    liveness, and run beside busy cores."""
     from services.policy_worker.vla.policy import ZettaVLAPolicy
 
-    ck = tiny_image_checkpoint(tmp_path)
+    ck = tiny_image_checkpoint(tmp)
     specs = ZettaVLAPolicy(ck, name="zetta-vla-image").input_specs()
-    # A loose heartbeat budget: this test is about frames, not liveness, and runs beside busy cores.
-    stack = stack_factory(env_workers=1, slots=2, families=("libero",), models=("zetta-vla-image",), critic=False,
+    stack = stack_factory(env_workers=1, slots=slots, families=("libero",), models=("zetta-vla-image",), critic=False,
                           heartbeat_timeout_ms=15000,
                           extra_env={"ZETTA_VLA_CHECKPOINT": str(ck), "ZETTA_LOG_LEVEL": "INFO"})
+    return stack, {**LIBERO_CREAM, **render_config(specs)}
+
+
+async def test_frames_flow_through_the_stack_and_a_wrong_size_is_refused(stack_factory, tmp_path) -> None:
+    stack, config = image_stack(stack_factory, tmp_path, slots=2)
     async with Gateway(stack.gateway_address) as gw:
-        good = await gw.create_sessions(env_family="libero", n=1, env_config={**LIBERO_CREAM, **render_config(specs)})
-        wrong = await gw.create_sessions(env_family="libero", n=1,
-                                         env_config={**LIBERO_CREAM, **render_config(specs), "camera_size": SIZE + 16})
+        good = await gw.create_sessions(env_family="libero", n=1, env_config=config)
+        wrong = await gw.create_sessions(env_family="libero", n=1, env_config={**config, "camera_size": SIZE + 16})
         await good.reset(seed=0)
         await wrong.reset(seed=0)
         results = await good.policy_step(execute_steps=4)
@@ -113,15 +120,9 @@ async def test_a_redirection_asks_the_policy_under_an_instruction_its_checkpoint
     """The episode's instruction is one the checkpoint never saw; the redirection of its pick
     sub-goal (reached(cream_cheese_1)) asks the policy under the checkpoint's own sentence on the
     cream cheese, not under the sub-goal's words ("pick up the cream cheese")."""
-    from services.policy_worker.vla.policy import ZettaVLAPolicy
-
-    ck = tiny_image_checkpoint(tmp_path)
-    specs = ZettaVLAPolicy(ck, name="zetta-vla-image").input_specs()
-    stack = stack_factory(env_workers=1, slots=1, families=("libero",), models=("zetta-vla-image",), critic=False,
-                          heartbeat_timeout_ms=15000,
-                          extra_env={"ZETTA_VLA_CHECKPOINT": str(ck), "ZETTA_LOG_LEVEL": "INFO"})
+    stack, config = image_stack(stack_factory, tmp_path, slots=1)
     async with Gateway(stack.gateway_address) as gw:
-        group = await gw.create_sessions(env_family="libero", n=1, env_config={**LIBERO_CREAM, **render_config(specs)})
+        group = await gw.create_sessions(env_family="libero", n=1, env_config=config)
         await group.reset(seed=0, instruction="put the cream cheese on the plate",
                           harness_dir=str(redirect_package(tmp_path / "pkg")))
         (summary,) = await group.run_episode(max_steps=16, execute_steps=4)
