@@ -15,7 +15,7 @@ import json
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Mapping, Sequence
 from typing import Any
 
 import grpc
@@ -41,6 +41,10 @@ from zetta_wire.v1 import critic_pb2, critic_pb2_grpc
 
 log = logging.getLogger(__name__)
 
+#: Bounds on EvaluateStart.policy_instructions: a model's training instructions (LIBERO-90 has 90),
+#: each a sentence; a redirection scans them all, so a client cannot make that scan unbounded.
+MAX_POLICY_INSTRUCTIONS = 1024
+MAX_INSTRUCTION_CHARS = 1024
 _FILE_CHANGE = {
     "added": critic_pb2.FILE_CHANGE_ADDED,
     "removed": critic_pb2.FILE_CHANGE_REMOVED,
@@ -239,6 +243,7 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
         if first.WhichOneof("kind") != "start":
             raise ge.invalid("the first Evaluate message must be a start naming the harness")
         start = first.start
+        _check_policy_instructions(start.policy_instructions)
         resolved = await self.registry.resolve(start.harness, start.task)
         package = await self.cache.get(resolved)
         try:
@@ -283,3 +288,14 @@ class CriticServicer(critic_pb2_grpc.CriticServiceServicer):
             self._hop.observe(time.perf_counter() - t0)
             yield response
             step += 1
+
+
+def _check_policy_instructions(instructions: Sequence[str]) -> None:
+    """INVALID_ARGUMENT for more than MAX_POLICY_INSTRUCTIONS, or one longer than MAX_INSTRUCTION_CHARS."""
+    if len(instructions) > MAX_POLICY_INSTRUCTIONS:
+        raise ge.invalid(f"EvaluateStart.policy_instructions has {len(instructions)} entries; at most "
+                         f"{MAX_POLICY_INSTRUCTIONS} (the instructions your policy was trained on)")
+    for i, text in enumerate(instructions):
+        if len(text) > MAX_INSTRUCTION_CHARS:
+            raise ge.invalid(f"EvaluateStart.policy_instructions[{i}] is {len(text)} characters long; at most "
+                             f"{MAX_INSTRUCTION_CHARS}")

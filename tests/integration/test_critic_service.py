@@ -254,6 +254,18 @@ async def test_evaluate_errors(reg: zh.HarnessRegistry, stack: LocalStack) -> No
             await call.read()
         assert rpc.value.code() == grpc.StatusCode.INVALID_ARGUMENT
         assert "needs 12 bytes, got 5" in rpc.value.details()
+        # More policy instructions than a model has, or one that is no sentence: refused at the start.
+        from services.critic.servicer import MAX_INSTRUCTION_CHARS, MAX_POLICY_INSTRUCTIONS
+
+        for bad, says in ((["put the bowl on the plate"] * (MAX_POLICY_INSTRUCTIONS + 1), "entries; at most"),
+                          (["ok", "x" * (MAX_INSTRUCTION_CHARS + 1)], "policy_instructions[1] is")):
+            call = critic_pb2_grpc.CriticServiceStub(channel).Evaluate()
+            await call.write(critic_pb2.EvaluateRequest(start=critic_pb2.EvaluateStart(
+                harness="eval-errors@1", policy_instructions=bad)))
+            with pytest.raises(grpc.aio.AioRpcError) as rpc:
+                await call.read()
+            assert rpc.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert says in rpc.value.details()
 
 
 # ---- command line ---------------------------------------------------------------------------------
