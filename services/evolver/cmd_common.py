@@ -8,6 +8,7 @@ the others, so the commands do not import each other.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS
@@ -19,6 +20,7 @@ from services.evolver.gate import GateParams
 from services.evolver.llm import LLMConfig, LLMError, config_from_env
 from services.evolver.repair import SearchParams
 from services.evolver.rollout import RunConfig
+from services.evolver.stack import policy_instructions
 
 
 def add_run_args(p: argparse.ArgumentParser) -> None:
@@ -29,6 +31,7 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", type=Path, default=None, help="report directory (default <store>/report)")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
+    add_policy_worker_arg(p)
     p.add_argument("--model", default=DEFAULT_POLICY, help=f"the frozen policy (default {DEFAULT_POLICY})")
     p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
                    help=f"actions of each chunk executed per policy call (default {EXECUTE_STEPS}, the VLA's own)")
@@ -37,6 +40,22 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env-workers", type=int, default=2, help="env workers of the local stack")
     p.add_argument("--video", action="store_true", help="record every rollout's video (slower: renders each step)")
     add_progress_option(p)
+
+
+def add_policy_worker_arg(p: argparse.ArgumentParser) -> None:
+    """--policy-worker: where a running stack's frozen policy can be asked what it was trained on."""
+    p.add_argument("--policy-worker", default=None,
+                   help="a policy worker of that stack (with --gateway): the repair search asks it which "
+                        "instructions the policy was trained on (without it, every firing of an instruction "
+                        "redirection on a success counts as a false positive)")
+
+
+def with_policy_instructions(cfg: EvolveConfig, address: str, model: str) -> EvolveConfig:
+    """``cfg`` with the instructions the frozen policy was trained on (ListModels at ``address``)."""
+    try:
+        return dataclasses.replace(cfg, policy_instructions=policy_instructions(address, model))
+    except RuntimeError as exc:
+        raise SystemExit(f"zetta evolve: {exc}") from None
 
 
 def add_search_args(p: argparse.ArgumentParser) -> None:

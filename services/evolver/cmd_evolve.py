@@ -18,7 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.progress import PhaseBars, add_progress_option
-from services.evolver.cmd_common import add_run_args, add_search_args, evolve_config, run_config, tasks_of
+from services.evolver.cmd_common import (add_run_args, add_search_args, evolve_config, run_config, tasks_of,
+                                         with_policy_instructions)
 from services.evolver.evolve import Evolution
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -66,7 +67,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.time()
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
-                                          store_dir / "stack", a.video) as ep:
+                                          store_dir / "stack", a.video, a.policy_worker) as ep:
+            cfg = with_policy_instructions(cfg, ep.policy, a.model)
             registry = RegistryClient(ep.registry)
             try:
                 Evolution(cfg, store, run_config(a, ep.gateway), registry, bars).run()

@@ -30,7 +30,8 @@ from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS
 from services.common.progress import PhaseBars, add_progress_option
 from services.common.provenance import git_source
 from services.evolver import results
-from services.evolver.cmd_common import add_search_args, evolve_config, publish_dir
+from services.evolver.cmd_common import (add_policy_worker_arg, add_search_args, evolve_config, publish_dir,
+                                         with_policy_instructions)
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -99,6 +100,7 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--out", type=Path, default=Path("runs") / "experiment")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
+    add_policy_worker_arg(p)
     p.add_argument("--model", default=DEFAULT_POLICY)
     p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
                    help=f"actions of each chunk executed per policy call (default {EXECUTE_STEPS}, the VLA's own)")
@@ -128,7 +130,7 @@ def main(argv: Sequence[str]) -> int:
                                                       "nominal_seeds")}}}
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
-                                          a.out / "stack", False) as ep:
+                                          a.out / "stack", False, a.policy_worker) as ep:
             run = RunConfig(gateway=ep.gateway, model=a.model, execute_steps=a.execute_steps, max_steps=a.max_steps,
                             concurrency=a.concurrency)
             registry = RegistryClient(ep.registry)
@@ -137,7 +139,8 @@ def main(argv: Sequence[str]) -> int:
                     store = RolloutStore(a.out / suite)
                     t0 = time.time()
                     # One registry serves every suite: the suite in the name keeps each task's versions apart.
-                    cfg = evolve_config(a, suite, tasks, f"evolved-{suite}")
+                    cfg = with_policy_instructions(evolve_config(a, suite, tasks, f"evolved-{suite}"), ep.policy,
+                                                   a.model)
                     try:
                         Evolution(cfg, store, run, registry, bars).run()
                     except StoreError as exc:

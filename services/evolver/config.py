@@ -18,6 +18,8 @@ class EvolverConfig:
     gateway: str
     registry: str
     store: str
+    #: A policy worker of the stack, asked which instructions the frozen policy was trained on ("": none).
+    policy_worker: str
     max_jobs: int
     grace_seconds: float
 
@@ -32,6 +34,7 @@ class EvolverConfig:
             gateway=env.address("ZETTA_GATEWAY_ADDRESS", required=True),
             registry=env.address("ZETTA_CRITIC_ADDR", required=True),
             store=env.str("ZETTA_EVOLVER_STORE", required=True),
+            policy_worker=env.address("ZETTA_POLICY_WORKER_ADDR"),
             max_jobs=env.int("ZETTA_EVOLVER_MAX_JOBS", 1, minimum=1, maximum=64),
             grace_seconds=env.float("ZETTA_GRACE_SECONDS", 30.0, minimum=0.0),
         )

@@ -69,6 +69,10 @@ class EvolveConfig:
     #: Bare-policy episodes per task on the original suite of a LIBERO-PRO variant whose successes
     #: count as false positives for a critic that fires on them (services/evolver/nominal.py); 0: none.
     nominal_seeds: int = 2
+    #: The instructions the frozen policy was trained on (ListModels): the repair search does not
+    #: count a redirection's firing that would ask the episode's own instruction as a false positive,
+    #: since the runtime does not start it. Empty: every firing counts.
+    policy_instructions: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -332,12 +336,13 @@ class Evolution:
     def _candidates(self, spec: RepairSpec, base: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
                     succ_traces: Sequence[Trace]) -> list[Candidate]:
         """Ranked patches on top of ``base``: the offline search, plus the LLM's when configured."""
-        cands = search(spec, base, medoid, members, succ_traces, self.cfg.search, self.store.is_rejected)
+        cands = search(spec, base, medoid, members, succ_traces, self.cfg.search, self.store.is_rejected,
+                       self.cfg.policy_instructions)
         if self.cfg.llm is None:
             return cands
         try:
             extra, refused = propose(self.cfg.llm, spec, base, medoid, members, succ_traces, self.cfg.search,
-                                     self.cfg.max_edits)
+                                     self.cfg.max_edits, self.cfg.policy_instructions)
         except LLMError as exc:
             self.store.record("llm", {"cluster": spec.cluster, "error": str(exc)})
             return cands

@@ -27,6 +27,7 @@ from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
 from services.evolver.repair import SearchParams
 from services.evolver.rollout import RunConfig
+from services.evolver.stack import policy_instructions
 from services.evolver.store import INIT_STATES, RolloutStore
 
 log = logging.getLogger("evolver.jobs")
@@ -117,11 +118,12 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
 class JobManager:
     """Starts, tracks and stops jobs; thread-safe."""
 
-    def __init__(self, root: Path, gateway: str, registry: str, max_jobs: int) -> None:
+    def __init__(self, root: Path, gateway: str, registry: str, max_jobs: int, policy_worker: str = "") -> None:
         self.root = root
         self.root.mkdir(parents=True, exist_ok=True)
         self.gateway = gateway
         self.registry = registry
+        self.policy_worker = policy_worker
         self.max_jobs = max_jobs
         self.draining = False
         self._lock = threading.Lock()
@@ -216,7 +218,8 @@ class JobManager:
                                gate=GateParams(spec["regression_min"]), max_depth=spec["max_depth"],
                                test_seeds=int(spec.get("test_seeds") or EvolveConfig.test_seeds),
                                llm=_llm() if spec.get("llm") else None,
-                               nominal_seeds=int(spec.get("nominal_seeds", EvolveConfig.nominal_seeds)))
+                               nominal_seeds=int(spec.get("nominal_seeds", EvolveConfig.nominal_seeds)),
+                               policy_instructions=policy_instructions(self.policy_worker, spec["model"]))
             run = RunConfig(gateway=self.gateway, model=spec["model"], execute_steps=spec["execute_steps"],
                             max_steps=spec["max_steps"], concurrency=spec["concurrency"])
             Evolution(cfg, store, run, registry, self._progress(job, store)).run()

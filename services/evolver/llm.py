@@ -21,7 +21,7 @@ from typing import Any
 from services.evolver.diagnose import RepairSpec
 from services.evolver.draft import CODE_TEMPLATE, CriticDraft, HarnessDraft
 from services.evolver.repair import (Candidate, ReplayCase, SearchParams, check_patch, code_detector, library, plan_of,
-                                     plan_stages, playbooks, score_critic)
+                                     plan_redirect, plan_stages, playbooks, score_critic)
 from services.evolver.replay import ReplayFailed, SandboxedCritic
 from services.evolver.trace import Trace
 
@@ -109,13 +109,14 @@ def parse_patches(text: str) -> list[dict[str, Any]]:
 
 def propose(cfg: LLMConfig, spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
             successes: Sequence[Trace], params: SearchParams = SearchParams(),
-            max_edits: int = 3) -> tuple[list[Candidate], list[str]]:
-    """Candidates from the LLM that pass every offline check, and the reasons others were refused."""
+            max_edits: int = 3, policy_instructions: Sequence[str] = ()) -> tuple[list[Candidate], list[str]]:
+    """Candidates from the LLM that pass every offline check, and the reasons others were refused;
+    ``policy_instructions`` as for repair.search."""
     preds, recs = library()
     accepted: list[Candidate] = []
     refused: list[str] = []
     for p in parse_patches(ask(cfg, _prompt(spec, parent, preds, recs))):
-        cand, why = _candidate(p, spec, parent, medoid, members, successes, params, max_edits)
+        cand, why = _candidate(p, spec, parent, medoid, members, successes, params, max_edits, policy_instructions)
         if cand is not None:
             accepted.append(cand)
         else:
@@ -125,13 +126,14 @@ def propose(cfg: LLMConfig, spec: RepairSpec, parent: HarnessDraft, medoid: Repl
 
 def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase,
                members: Sequence[ReplayCase], successes: Sequence[Trace], params: SearchParams,
-               max_edits: int) -> tuple[Candidate | None, str]:
+               max_edits: int, policy_instructions: Sequence[str] = ()) -> tuple[Candidate | None, str]:
     """The candidate an LLM patch makes, or None and why it was refused (the search's own checks)."""
     from services.harness.runtime.library.schema import resolve
 
     preds, _ = library()
     if isinstance(patch.get("critic"), Mapping) and "code" in patch["critic"]:
-        return _code_candidate(patch, spec, parent, medoid, members, successes, params, max_edits)
+        return _code_candidate(patch, spec, parent, medoid, members, successes, params, max_edits,
+                               policy_instructions)
     try:
         template = str(patch["critic"]["template"])
         setting = {str(k): v for k, v in dict(patch["critic"].get("params", {})).items()}
@@ -145,7 +147,8 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
     if why is not None:
         return None, why
     full = resolve(preds[template].params, setting, template)
-    res = score_critic(preds[template].fn, full, medoid, members, successes, params.window, critic.missing)
+    res = score_critic(preds[template].fn, full, medoid, members, successes, params.window, critic.missing,
+                       redirect=plan_redirect(plan, policy_instructions))
     if res is None:
         return None, f"{template} does not fire within {params.window} steps of t_EOD on a replay of the medoid"
     if res[2] > params.max_false_positive:
@@ -157,7 +160,7 @@ def _candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft,
 
 def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase,
                     members: Sequence[ReplayCase], successes: Sequence[Trace], params: SearchParams,
-                    max_edits: int) -> tuple[Candidate | None, str]:
+                    max_edits: int, policy_instructions: Sequence[str] = ()) -> tuple[Candidate | None, str]:
     """The candidate of a patch whose critic is code: rendered, loaded through the package loader's
     checks, built into a runtime (the signal whitelist), then replayed like a template."""
     from services.harness.package.errors import PackageRejected
@@ -186,7 +189,8 @@ def _code_candidate(patch: Mapping[str, Any], spec: RepairSpec, parent: HarnessD
     except ReplayFailed as exc:
         return None, str(exc)
     try:
-        res = score_critic(detect, setting, medoid, members, successes, params.window, critic.missing)
+        res = score_critic(detect, setting, medoid, members, successes, params.window, critic.missing,
+                           redirect=plan_redirect(plan, policy_instructions))
     except ReplayFailed as exc:
         return None, str(exc)  # raised, overran or crashed on a replay: recorded, the next patch goes on
     finally:

@@ -46,7 +46,7 @@ async def main() -> None:
         raise ConfigError(f"evolver: ZETTA_EVOLVER_STORE={cfg.store} is not a writable directory: {exc}") from None
     await asyncio.to_thread(_reachable, cfg.gateway, "gateway", "ZETTA_GATEWAY_ADDRESS")
     await asyncio.to_thread(_reachable, cfg.registry, "critic service", "ZETTA_CRITIC_ADDR")
-    jobs = JobManager(store, cfg.gateway, cfg.registry, cfg.max_jobs)
+    jobs = JobManager(store, cfg.gateway, cfg.registry, cfg.max_jobs, cfg.policy_worker)
 
     async def drain() -> None:
         await asyncio.to_thread(jobs.drain, max(0.0, cfg.grace_seconds - 1.0))

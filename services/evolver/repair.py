@@ -45,6 +45,8 @@ COMPATIBLE: dict[str, tuple[str, ...]] = {
 }
 #: Predicates that state a healthy condition (used by re-entry and gating), never failure evidence.
 NOT_EVIDENCE = frozenset({"grasp_retained", "supported_placement"})
+#: The library's instruction redirection (recoveries.RedirectInstruction).
+REDIRECT = "redirect_instruction"
 
 
 class LibraryUnavailable(RuntimeError):
@@ -174,14 +176,18 @@ class FrameCache:
 
 def score_critic(fn: Any, params: Mapping[str, float], medoid: ReplayCase,
                  members: Sequence[ReplayCase], successes: Sequence[Trace], window: int,
-                 stages: tuple[str, ...] = (), cache: FrameCache | None = None) -> tuple[int, float, float] | None:
+                 stages: tuple[str, ...] = (), cache: FrameCache | None = None,
+                 redirect: Sequence[str] | None = None) -> tuple[int, float, float] | None:
     """(fire step on the medoid, member coverage, false-positive rate) or None when it misses t_EOD.
-    With ``stages`` (the kinds of first missing milestone the patch's rule is gated on) only firings
-    the orchestrator would grant count, on failures and successes alike."""
+    Only firings the runtime would act on count, on failures and successes alike: with ``stages``
+    (the kinds of first missing milestone the patch's rule is gated on) those the orchestrator
+    grants; with ``redirect`` (the plan is an instruction redirection; the policy's trained
+    sentences) those whose redirection would not ask the episode's own instruction, which the
+    runtime does not start (replay.granted)."""
     cache = cache or FrameCache()
 
     def fire_on(trace: Trace, start: int = 0) -> int | None:
-        return first_fire(trace, fn, params, start=start, cached=cache(trace), stages=stages)
+        return first_fire(trace, fn, params, start=start, cached=cache(trace), stages=stages, redirect=redirect)
 
     fire = fire_on(medoid.trace, medoid.start)
     if fire is None or not medoid.catches(fire, window):
@@ -212,6 +218,12 @@ def plan_of(name: str, args: Mapping[str, Any] | None = None) -> PlanDraft:
                      clear_when=book.clear_when, playbook=book.name)
 
 
+def plan_redirect(plan: PlanDraft, policy_instructions: Sequence[str]) -> tuple[str, ...] | None:
+    """The policy's trained sentences when the plan is an instruction redirection alone (the
+    runtime does not start one that would ask the episode's own instruction), else None."""
+    return tuple(policy_instructions) if plan.recovery == REDIRECT else None
+
+
 def plan_stages(plan: PlanDraft, m_star: str) -> tuple[str, ...]:
     """Kinds of first missing milestone under which the plan is granted: a playbook's own stages
     (it was written for all of them, so the patch transfers to seeds that fail one stage earlier or
@@ -236,7 +248,8 @@ def recovery_options(evidence: str, m_star: str, recoveries: Mapping[str, Any], 
 
 def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: Sequence[ReplayCase],
            successes: Sequence[Trace], params: SearchParams = SearchParams(),
-           rejected: Callable[[str], bool] | None = None) -> list[Candidate]:
+           rejected: Callable[[str], bool] | None = None, policy_instructions: Sequence[str] = ()
+           ) -> list[Candidate]:
     """Ranked candidate patches for a repairable spec (empty when nothing qualifies).
 
     Each critic template keeps its best setting (coverage of the cluster, then false positives,
@@ -244,7 +257,9 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
     The ranking walks both orders diagonally (best critic with best plan, then the runner-up of
     either, ...), so a few closed-loop validations try different plans and different detectors
     instead of near-copies of one patch. ``rejected(fingerprint) -> bool`` filters candidates
-    whose resulting harness was rejected before, so no candidate is ever evaluated twice."""
+    whose resulting harness was rejected before, so no candidate is ever evaluated twice.
+    ``policy_instructions`` (the frozen policy's trained sentences, ListModels) tell which firings
+    of a redirection plan the runtime would not start (:func:`plan_redirect`)."""
     if not spec.repairable:
         return []
     preds, recs = library()
@@ -252,18 +267,21 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
     critics = []
     for order, template in enumerate(_templates_for(spec, parent, preds)):
         base = parent.critics.get(f"c_{template}")
-        # A plan's stages gate when its rule grants the critic, so the best setting (and whether one
-        # qualifies at all) is found per stage set: a firing on a success where the rule would veto
-        # it is no false positive.
-        best_for: dict[tuple[str, ...], Any] = {}
+        # A plan's stages gate when its rule grants the critic, and a redirection is not started
+        # when it would ask the episode's own instruction, so the best setting (and whether one
+        # qualifies at all) is found per stage set and redirection: a firing on a success where the
+        # runtime would not act is no false positive.
+        best_for: dict[tuple[tuple[str, ...], bool], Any] = {}
         viable = []
         for plan in recovery_options(template, spec.m_star, recs, holding=preds[template].holding):
             stages = plan_stages(plan, spec.m_star)
-            if stages not in best_for:
-                best_for[stages] = _best_setting(preds[template], base.params if base else None, medoid, members,
-                                                 successes, params, stages, cache)
-            if best_for[stages] is not None:
-                viable.append((plan, stages, best_for[stages]))
+            redirect = plan_redirect(plan, policy_instructions)
+            gate = (stages, redirect is not None)
+            if gate not in best_for:
+                best_for[gate] = _best_setting(preds[template], base.params if base else None, medoid, members,
+                                               successes, params, stages, cache, redirect)
+            if best_for[gate] is not None:
+                viable.append((plan, stages, best_for[gate]))
         if viable:
             critics.append((min(v[2][0] for v in viable), order, template, viable))
     critics.sort(key=lambda c: (c[0], c[1]))
@@ -287,7 +305,7 @@ def search(spec: RepairSpec, parent: HarnessDraft, medoid: ReplayCase, members: 
 
 def _best_setting(spec: Any, current: Mapping[str, float] | None, medoid: ReplayCase, members: Sequence[ReplayCase],
                   successes: Sequence[Trace], params: SearchParams, stages: tuple[str, ...] = (),
-                  cache: FrameCache | None = None
+                  cache: FrameCache | None = None, redirect: Sequence[str] | None = None
                   ) -> tuple[tuple[float, float, int, int], dict[str, float], tuple[int, float, float]] | None:
     """A predicate template's best setting on the bounded grid for a rule gated on ``stages``, with
     its rank key (cluster coverage, false positives, distance of the firing from t_EOD, parameters
@@ -296,7 +314,7 @@ def _best_setting(spec: Any, current: Mapping[str, float] | None, medoid: Replay
     reference = dict(current) if current is not None else {k: p.default for k, p in spec.params.items()}
     best = None
     for setting in param_grid(spec.params, params.max_param_edits, params.grid_fraction):
-        res = score_critic(spec.fn, setting, medoid, members, successes, params.window, stages, cache)
+        res = score_critic(spec.fn, setting, medoid, members, successes, params.window, stages, cache, redirect)
         if res is None or res[2] > params.max_false_positive:
             continue
         key = (-res[1], res[2], abs(res[0] - medoid.t_eod), sum(reference.get(k) != v for k, v in setting.items()))

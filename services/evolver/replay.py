@@ -20,13 +20,14 @@ in-process instead, as the env worker then does.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from services.harness.runtime import signals
 from services.harness.runtime.api import Frame, Window
+from services.harness.runtime.library.recoveries import redirection, same_instruction
 from services.harness.runtime.orchestrator import first_missing, milestone_kind
 from services.harness.runtime.perception import Perception, episode_seed
 from services.evolver.trace import Trace
@@ -114,14 +115,15 @@ class SandboxedCritic:
         self.close()
 
     def first_fire(self, trace: Trace, instruction: str = "", start: int = 0,
-                   cached: list[Frame] | None = None, stages: tuple[str, ...] = ()) -> int | None:
-        """The env step at which the critic first proposed (at a frame ``stages`` grants), or None;
-        raises ReplayFailed."""
+                   cached: list[Frame] | None = None, stages: tuple[str, ...] = (),
+                   redirect: Sequence[str] | None = None) -> int | None:
+        """The env step at which the critic first proposed (at a frame :func:`granted` grants), or
+        None; raises ReplayFailed."""
         from services.harness.sandbox import codec
         from services.harness.sandbox.client import SandboxError
 
         fs = cached if cached is not None else frames(trace)
-        self.code.start(instruction, trace.milestone_names)
+        self.code.start(instruction or trace.instruction, trace.milestone_names)
         limit = self.hard_limit_s
         run = [(self.index, False)]
         every = self.every if trace.step_obs else 1
@@ -129,7 +131,7 @@ class SandboxedCritic:
             # The critic runs from ``start`` on, at the runtime's cadence; the frames before a call
             # reach the child's window ahead of it.
             for k in _replayed(trace, fs, start):
-                if fs[k].step % every or not granted(trace, fs[k], stages):
+                if fs[k].step % every or not granted(trace, fs[k], stages, redirect):
                     continue
                 res = self.code.step(fs[max(0, k - WINDOW + 1): k + 1], run, lambda i: limit)[0]
                 if res.kind == codec.R_PROPOSAL:
@@ -143,30 +145,41 @@ class SandboxedCritic:
         return None
 
 
-def granted(trace: Trace, frame: Frame, stages: tuple[str, ...]) -> bool:
-    """Whether the orchestrator could grant a critic gated on ``stages`` (kinds of first missing
-    milestone, a rule's ``missing``) at this frame; every frame when ``stages`` is empty. Once every
-    milestone is reached nothing is missing, and no gated rule grants anything."""
-    return not stages or milestone_kind(first_missing(trace.milestone_names, frame.milestones)) in stages
+def granted(trace: Trace, frame: Frame, stages: tuple[str, ...], redirect: Sequence[str] | None = None) -> bool:
+    """Whether the runtime would start a patch's recovery on a firing at this frame: the orchestrator
+    grants a critic gated on ``stages`` (kinds of first missing milestone, a rule's ``missing``;
+    every frame when empty; once every milestone is reached nothing is missing, and no gated rule
+    grants anything), and, for an instruction redirection (``redirect``: the sentences the policy
+    was trained on), the redirection would not ask the episode's own instruction (the runtime does
+    not start a redundant recovery; recoveries.RedirectInstruction.redundant). A trace recorded
+    without its instruction is granted as before."""
+    if stages and milestone_kind(first_missing(trace.milestone_names, frame.milestones)) not in stages:
+        return False
+    if redirect is None or not trace.instruction:
+        return True
+    asked, _ = redirection(trace.milestone_names, frame.milestones, redirect, trace.instruction)
+    return not (asked and same_instruction(asked, trace.instruction))
 
 
 def first_fire(trace: Trace, fn: Callable[[Window, Mapping[str, float]], Any] | SandboxedCritic,
                params: Mapping[str, float], instruction: str = "", start: int = 0,
-               cached: list[Frame] | None = None, stages: tuple[str, ...] = ()) -> int | None:
+               cached: list[Frame] | None = None, stages: tuple[str, ...] = (),
+               redirect: Sequence[str] | None = None) -> int | None:
     """The env step at which ``fn(window, params)`` first returned evidence, or None; with
-    ``stages``, only frames where the runtime would grant a critic gated on them count (a firing the
-    orchestrator vetoes interrupts nothing). A :class:`SandboxedCritic` runs in its sandbox child
-    (with the parameters it was loaded with) and raises ReplayFailed when it fails; a library
-    predicate that raises is silent on that trace."""
+    ``stages`` or ``redirect``, only frames where the runtime would start the patch's recovery count
+    (:func:`granted`: a firing the orchestrator vetoes, or a redirection the runtime does not start,
+    interrupts nothing). The window's instruction is ``instruction``, else the trace's own. A
+    :class:`SandboxedCritic` runs in its sandbox child (with the parameters it was loaded with) and
+    raises ReplayFailed when it fails; a library predicate that raises is silent on that trace."""
     if isinstance(fn, SandboxedCritic):
-        return fn.first_fire(trace, instruction, start, cached, stages)
+        return fn.first_fire(trace, instruction, start, cached, stages, redirect)
     fs = cached if cached is not None else frames(trace)
     # The runtime's window is widened past every integer parameter (a horizon in frames), so is this.
     size = max([WINDOW, *(int(v) + 1 for v in params.values() if float(v).is_integer())])
     for k in _replayed(trace, fs, start):
-        if not granted(trace, fs[k], stages):
+        if not granted(trace, fs[k], stages, redirect):
             continue
-        window = Window(frames=fs[max(0, k - size + 1): k + 1], instruction=instruction,
+        window = Window(frames=fs[max(0, k - size + 1): k + 1], instruction=instruction or trace.instruction,
                         milestone_names=trace.milestone_names)
         try:
             hit = fn(window, params)

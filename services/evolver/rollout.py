@@ -93,7 +93,7 @@ async def run_one(gw: Gateway, session_id: str, key: EpisodeKey, cfg: RunConfig)
     start = time.perf_counter()
     reset = (await gw.call("Reset", gateway_pb2.ResetRequest(
         session_ids=[session_id], specs=[_reset_spec(key, cfg.record_video)]))).results[0]
-    recorder = TraceRecorder(list(reset.milestone_names))
+    recorder = TraceRecorder(list(reset.milestone_names), reset.instruction)
     first = decode_observation(reset.observation)
     recorder.frame(0, first)
     recorder.step(first)

@@ -22,16 +22,18 @@ class Endpoints:
 
     gateway: str
     registry: str
+    #: A policy worker serving the frozen policy, asked what it was trained on ("": none known).
+    policy: str = ""
 
 
 @contextmanager
 def endpoints(gateway: str | None, registry: str | None, model: str, env_workers: int, slots: int,
-              workdir: Path, video: bool) -> Iterator[Endpoints]:
+              workdir: Path, video: bool, policy: str | None = None) -> Iterator[Endpoints]:
     """The given addresses, or a local stack started for the duration of the block."""
     if gateway:
         if not registry:
             raise SystemExit("--gateway needs --registry too (the critic service that serves harness versions)")
-        yield Endpoints(gateway, registry)
+        yield Endpoints(gateway, registry, policy or "")
         return
     from services.ops.local_stack import LocalStack
 
@@ -54,7 +56,32 @@ def endpoints(gateway: str | None, registry: str | None, model: str, env_workers
         for i in range(env_workers):
             stack.start_env_worker(i)
         stack.wait_workers(env_workers)
-        yield Endpoints(stack.gateway_address, stack.critic_address)
+        yield Endpoints(stack.gateway_address, stack.critic_address, stack.services["policy-0"].address)
+
+
+def policy_instructions(address: str, model: str, timeout: float = 30.0) -> tuple[str, ...]:
+    """The instructions ``model`` was trained on, from the policy worker at ``address`` (ListModels;
+    empty when it lists none, when ``address`` is empty or when the worker does not serve it). The
+    repair search needs them to tell which redirections the runtime would not start. An unreachable
+    worker is an error: a search without them would count false positives the runtime never makes."""
+    if not address:
+        return ()
+    import grpc
+
+    from services.common.tls import sync_channel
+    from zetta_wire.v1 import policy_worker_pb2, policy_worker_pb2_grpc
+
+    with sync_channel(address) as channel:
+        try:
+            listing = policy_worker_pb2_grpc.PolicyWorkerServiceStub(channel).ListModels(
+                policy_worker_pb2.ListModelsRequest(), timeout=timeout)
+        except grpc.RpcError as exc:
+            raise RuntimeError(f"the policy worker at {address} did not list its models "
+                               f"({exc.code().name}: {exc.details()})") from None
+    for m in listing.models:
+        if m.name == model or (not model and m.is_default):
+            return tuple(m.instructions)
+    return ()
 
 
 @contextmanager

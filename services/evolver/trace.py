@@ -43,6 +43,8 @@ class Trace:
     #: The observation at every env step ([T + 1, ...] per tensor; entry t after ``actions[t - 1]``),
     #: empty when the rollout did not record steps.
     step_obs: dict[str, np.ndarray] = field(default_factory=dict)
+    #: The episode's instruction (ResetResult.instruction); "" in traces recorded before it was kept.
+    instruction: str = ""
 
     @property
     def steps(self) -> int:
@@ -74,7 +76,8 @@ class Trace:
         arrays.update(
             frame_step=self.frame_step, actions=self.actions, action_frame=self.action_frame,
             meta=np.frombuffer(json.dumps({"milestone_names": self.milestone_names, "interventions":
-                                           self.interventions, "recovery_steps": self.recovery_steps}).encode(),
+                                           self.interventions, "recovery_steps": self.recovery_steps,
+                                           "instruction": self.instruction}).encode(),
                                dtype=np.uint8),
         )
         buf = io.BytesIO()
@@ -90,14 +93,16 @@ class Trace:
             steps = {k[5:]: z[k] for k in z.files if k.startswith("step/")}
             return cls(obs=obs, frame_step=z["frame_step"], actions=z["actions"], action_frame=z["action_frame"],
                        milestone_names=list(meta["milestone_names"]), interventions=list(meta["interventions"]),
-                       recovery_steps=int(meta.get("recovery_steps", 0)), step_obs=steps)
+                       recovery_steps=int(meta.get("recovery_steps", 0)), step_obs=steps,
+                       instruction=str(meta.get("instruction", "")))
 
 
 class TraceRecorder:
     """Accumulates frames while an episode runs; one per episode."""
 
-    def __init__(self, milestone_names: Sequence[str]) -> None:
+    def __init__(self, milestone_names: Sequence[str], instruction: str = "") -> None:
         self.milestone_names = list(milestone_names)
+        self.instruction = instruction
         self._obs: dict[str, list[np.ndarray]] = {}
         self._steps: list[int] = []
         self._actions: list[np.ndarray] = []
@@ -135,7 +140,7 @@ class TraceRecorder:
         return Trace(obs=obs, frame_step=np.asarray(self._steps, dtype=np.int32), actions=actions,
                      action_frame=np.asarray(self._action_frame, dtype=np.int32),
                      milestone_names=self.milestone_names, interventions=list(self.interventions),
-                     recovery_steps=self.recovery_steps, step_obs=steps)
+                     recovery_steps=self.recovery_steps, step_obs=steps, instruction=self.instruction)
 
 
 def _state(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -31,10 +31,11 @@ def service_env(**settings: str) -> dict[str, str]:
 
 
 def test_config_fails_fast_with_clear_messages(tmp_path: Path) -> None:
-    """Missing variables are named; an unreachable gateway is reported before serving."""
-    out = subprocess.run([sys.executable, "-m", "services.evolver.main"], env=service_env(), capture_output=True,
-                         text=True, timeout=60)
+    """Missing or malformed variables are named; an unreachable gateway is reported before serving."""
+    out = subprocess.run([sys.executable, "-m", "services.evolver.main"], capture_output=True, text=True, timeout=60,
+                         env=service_env(ZETTA_POLICY_WORKER_ADDR="policy-worker"))
     assert out.returncode != 0 and "ZETTA_GATEWAY_ADDRESS" in out.stderr and "ZETTA_EVOLVER_STORE" in out.stderr
+    assert "ZETTA_POLICY_WORKER_ADDR='policy-worker' is not a host:port address" in out.stderr
     dead = f"127.0.0.1:{free_port()}"
     out = subprocess.run([sys.executable, "-m", "services.evolver.main"], capture_output=True, text=True, timeout=60,
                          env=service_env(ZETTA_GATEWAY_ADDRESS=dead, ZETTA_CRITIC_ADDR=dead,
@@ -57,6 +58,7 @@ def evolver(evo_stack: Endpoints, tmp_path: Path) -> Iterator[tuple[str, int, su
                             env=service_env(ZETTA_EVOLVER_PORT=str(port), ZETTA_METRICS_PORT=str(metrics),
                                             ZETTA_GATEWAY_ADDRESS=evo_stack.gateway,
                                             ZETTA_CRITIC_ADDR=evo_stack.registry,
+                                            ZETTA_POLICY_WORKER_ADDR=evo_stack.policy,
                                             ZETTA_EVOLVER_STORE=str(tmp_path / "jobs"), ZETTA_GRACE_SECONDS="20"),
                             start_new_session=True)
     try:

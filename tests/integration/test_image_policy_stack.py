@@ -133,3 +133,27 @@ async def test_a_redirection_asks_the_policy_under_an_instruction_its_checkpoint
         assert iv["kind"] == "ask" and iv["start_step"] == 5
         assert iv["instruction"] == INSTRUCTION, iv
         await group.close()
+
+
+async def test_a_redirection_under_the_episodes_own_instruction_is_not_started_and_the_evolver_learns_why(
+        stack_factory, tmp_path) -> None:
+    """Under the checkpoint's own sentence the same redirection would ask the policy what it is
+    already asked: the runtime starts nothing. The evolver asks the policy worker (ListModels) for
+    the sentences, so its repair search skips the same firings; an unreachable worker is an error."""
+    from services.evolver.stack import policy_instructions
+
+    stack, config = image_stack(stack_factory, tmp_path, slots=1)
+    assert policy_instructions(stack.services["policy-0"].address, "zetta-vla-image") == (INSTRUCTION,)
+    assert policy_instructions(stack.services["policy-0"].address, "not-served") == ()
+    assert policy_instructions("", "zetta-vla-image") == ()
+    async with Gateway(stack.gateway_address) as gw:
+        group = await gw.create_sessions(env_family="libero", n=1, env_config=config)
+        await group.reset(seed=0, instruction=INSTRUCTION, harness_dir=str(redirect_package(tmp_path / "pkg")))
+        (summary,) = await group.run_episode(max_steps=16, execute_steps=4)
+        report = summary.harness_report
+        assert report is not None and report.interventions == [] and report.recovery_actions == 0, report
+        assert report.rejected >= 1, "the critic did propose; the runtime did not act on it"
+        await group.close()
+    stack.kill("policy-0")
+    with pytest.raises(RuntimeError, match="did not list its models"):
+        policy_instructions(stack.services["policy-0"].address, "zetta-vla-image", timeout=2)

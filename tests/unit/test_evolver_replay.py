@@ -105,3 +105,43 @@ def test_a_code_critic_replays_at_the_runtimes_cadence_in_its_sandbox() -> None:
         assert first_fire(record(every_step=True), critic, {}) == 44
         # Over call-rate frames alone its window holds 21 frames only at step 80.
         assert first_fire(record(every_step=False), critic, {}) == 80
+
+
+def test_a_trace_keeps_its_episode_instruction() -> None:
+    rec = TraceRecorder(["reached(a)"], "put the a on the b")
+    rec.frame(0, _obs(0))
+    back = Trace.from_bytes(rec.finish().to_bytes())
+    assert back.instruction == "put the a on the b"
+    assert Trace.from_bytes(record(every_step=False).to_bytes()).instruction == ""
+
+
+def test_a_redirection_the_runtime_would_not_start_is_no_false_positive() -> None:
+    """A critic that fires while nothing is reached, paired with instruction redirection: on a
+    success whose own instruction is the trained sentence the redirection would ask, the runtime
+    does not start it (nothing changes for the policy), so the search does not count it; on a
+    success under an unseen sentence, or with the policy's sentences unknown, it counts."""
+    import dataclasses
+
+    from services.evolver.repair import REDIRECT, ReplayCase, plan_of, plan_redirect, score_critic
+    from tests.unit.test_evolver_fixtures import make_trace
+
+    def nothing_reached(w: object, params: object) -> bool:
+        return not w.now.milestones  # type: ignore[attr-defined]
+
+    trained = ("put the a on the b", "put the c in the d")
+    miss = make_trace("miss", 4)
+    medoid = ReplayCase(miss, 40, referenced=False)
+    own = [dataclasses.replace(make_trace("success", s), instruction="put the a on the b") for s in range(3)]
+    unseen = dataclasses.replace(make_trace("success", 9), instruction="move the a onto the b")
+    redirect = plan_redirect(plan_of("redirect"), trained)
+    assert plan_of("redirect").recovery == REDIRECT and redirect == trained
+    assert plan_redirect(plan_of("acquire"), trained) is None
+    assert score_critic(nothing_reached, {}, medoid, [], own, 40, redirect=redirect) == (0, 1.0, 0.0)
+    assert score_critic(nothing_reached, {}, medoid, [], own + [unseen], 40, redirect=redirect)[2] == 0.25
+    assert score_critic(nothing_reached, {}, medoid, [], own, 40, redirect=None)[2] == 1.0
+    assert score_critic(nothing_reached, {}, medoid, [], own, 40, redirect=())[2] == 1.0, \
+        "with no trained sentence known the redirection asks the sub-goal's words, never the episode's"
+    # The medoid's own redirection is vetoed the same way: on a failure under the trained sentence
+    # the runtime would not start it either, so it catches nothing.
+    same = ReplayCase(dataclasses.replace(miss, instruction="put the a on the b"), 40, referenced=False)
+    assert score_critic(nothing_reached, {}, same, [], own, 40, redirect=redirect) is None

@@ -440,11 +440,21 @@ def test_a_package_that_reads_privileged_state_is_refused(source: str, match: st
 
 
 def test_a_playbook_over_the_intervention_cap_or_an_exact_sensor_is_refused() -> None:
-    from services.harness.runtime.limits import INTERVENTION_CAP
+    """80 actions for a recovery that moves the arm (a chain that includes a redirection too); 160
+    for an instruction redirection alone, during which the policy acts."""
+    from services.harness.runtime.limits import INTERVENTION_CAP, REDIRECTION_CAP
 
     plans = {"p": {"push": {"recovery": "tools:make_push", "max_steps": INTERVENTION_CAP + 1}}}
-    with pytest.raises(HarnessError, match="intervention cap"):
+    with pytest.raises(HarnessError, match="intervention cap of 80"):
         HarnessRuntime(package(RULE, plans))
+    chain = {"p": {"push": {"recovery": ["redirect_instruction", "freeze"], "max_steps": INTERVENTION_CAP + 1}}}
+    with pytest.raises(HarnessError, match="intervention cap of 80"):
+        HarnessRuntime(package(RULE, chain))
+    redirect = {"p": {"push": {"recovery": "redirect_instruction", "max_steps": REDIRECTION_CAP}}}
+    assert HarnessRuntime(package(RULE, redirect)).plans["push"].max_steps == REDIRECTION_CAP
+    redirect["p"]["push"]["max_steps"] = REDIRECTION_CAP + 1
+    with pytest.raises(HarnessError, match="redirection cap of 160"):
+        HarnessRuntime(package(RULE, redirect))
     with pytest.raises(HarnessError, match="least noise"):
         HarnessRuntime(package({"perception": {"dropout": 0.0}}))
 
@@ -529,3 +539,23 @@ def test_redirection_asks_the_policy_under_a_trained_instruction_and_reports_it(
     rt.policy_instructions = ()
     rt.start("put the wine bottle on the plate", names)
     assert rt.step(obs(1.0), None, frozenset()).instruction == "pick up the wine bottle"
+
+
+def test_a_redirection_under_the_episodes_own_instruction_is_not_started() -> None:
+    """On a task the policy was trained on, a pick sub-goal maps back to the episode's own
+    sentence: the redirection would ask the policy what it is already asked, so the runtime leaves
+    the policy in control and records no intervention; the same critic on an unseen task starts one."""
+    plans = {"p": {"push": {"recovery": "redirect_instruction", "params": {"steps": 10}}}}
+    names = ["reached(akita_black_bowl_1)", "grasped(akita_black_bowl_1)", "on(akita_black_bowl_1,plate_1)"]
+    rt = HarnessRuntime(package({**RULE, "reentry": {"gamma": 0.0, "k": 1}}, plans))
+    rt.policy_instructions = TRAINED
+    rt.start("Put the bowl on  the plate", names)
+    for step in range(3):
+        d = rt.step(obs(1.0), None if step == 0 else ACT, frozenset())
+        assert d.mode == "policy" and d.instruction == "" and d.action is None
+    report = rt.finish(success=True)
+    assert report.interventions == [] and report.recovery_actions == 0 and report.policy_actions == 2
+    assert report.rejected == 3, "each firing is counted as a proposal the runtime did not act on"
+    rt.start("put the bowl in the basket", names)
+    d = rt.step(obs(1.0), None, frozenset())
+    assert d.mode == "push" and d.instruction == "put the bowl on the plate"

@@ -42,7 +42,7 @@ from services.harness.runtime.budget import CallBudget, PlatformLimits, guarded_
 from services.harness.runtime.library import PREDICATES, RECOVERIES, EpisodeMemory, Recovery, resolve
 from services.harness.runtime.library.recoveries import DONE, FAILED, Chain, PolicyUnder
 from services.harness.runtime.library.schema import ParamError
-from services.harness.runtime.limits import INTERVENTION_CAP
+from services.harness.runtime.limits import REDIRECTION_CAP, intervention_cap
 from services.harness.runtime.orchestrator import POLICY, Orchestrator, Rule
 from services.harness.runtime.perception import Perception, episode_seed, noise_from_table
 from services.harness.runtime.reentry import ReentryContract
@@ -249,11 +249,13 @@ def _plan(mode: str, table: Mapping[str, Any], package: LoadedPackage,
         except ParamError as exc:
             raise HarnessError(str(exc)) from None
         clear = lambda w: spec.fn(w, cparams) is not None  # noqa: E731
-    max_steps, max_uses = int(table.get("max_steps", INTERVENTION_CAP)), int(table.get("max_uses", 3))
+    cap = intervention_cap(recovery if isinstance(recovery, list) else [recovery])
+    max_steps, max_uses = int(table.get("max_steps", cap)), int(table.get("max_uses", 3))
     if max_steps < 1 or max_uses < 1:
         raise HarnessError(f"playbook {mode}: max_steps and max_uses must be >= 1")
-    if max_steps > INTERVENTION_CAP:
-        raise HarnessError(f"playbook {mode}: max_steps {max_steps} is over the intervention cap of {INTERVENTION_CAP} "
+    if max_steps > cap:
+        what = "redirection cap" if cap == REDIRECTION_CAP else "intervention cap"
+        raise HarnessError(f"playbook {mode}: max_steps {max_steps} is over the {what} of {cap} "
                            "actions (a recovery corrects the policy, it does not run the task; docs/harness.md)")
     return Plan(mode, build, max_steps, max_uses, clear)
 
@@ -576,6 +578,19 @@ class HarnessRuntime:
     def _begin(self, window: Window, proposal: Proposal, rule: Rule, proposals: Sequence[Proposal]
                ) -> np.ndarray | PolicyUnder | None:
         plan = self.plans[rule.mode]
+        if self._awaiting is not None:  # before a package recovery's call: still due with the next step
+            self._collect_remote(self._held)
+        failure = ""
+        recovery: Recovery | None = None
+        try:
+            recovery = plan.build()
+            recovery.start(window, self._memory)
+        except Exception as exc:  # noqa: BLE001 - package recovery code: the intervention fails, not the episode
+            failure = f"recovery_failed: raised {type(exc).__name__}: {exc}"
+        if not failure and isinstance(recovery, Recovery) and recovery.redundant():
+            # It would ask the policy what it is already asked: no interruption, nothing recorded.
+            self.report.rejected += 1
+            return None
         self._uses[rule.mode] += 1
         iv = Intervention(
             id=f"iv{len(self.report.interventions) + 1}",
@@ -590,13 +605,9 @@ class HarnessRuntime:
         self.report.interventions.append(iv)
         self._active, self._plan, self._waiting = iv, plan, False
         self._mode = rule.mode
-        if self._awaiting is not None:  # before a package recovery's call: still due with the next step
-            self._collect_remote(self._held)
-        try:
-            self._recovery = plan.build()
-            self._recovery.start(window, self._memory)
-        except Exception as exc:  # noqa: BLE001 - package recovery code: the intervention fails, not the episode
-            self._end(f"recovery_failed: raised {type(exc).__name__}: {exc}")
+        self._recovery = recovery
+        if failure:
+            self._end(failure)
             return None
         return self._continue(window, proposals)
 

@@ -54,6 +54,12 @@ class Recovery:
         """The next action, or None once finished."""
         raise NotImplementedError
 
+    def redundant(self) -> bool:
+        """Whether, once started, this recovery would change nothing the policy does (a redirection
+        under the episode's own instruction): the runtime then does not start it, and nothing is
+        recorded as an intervention."""
+        return False
+
     def _finish(self, status: str, reason: str = "") -> None:
         self.status, self.reason = status, reason
 
@@ -445,6 +451,32 @@ def policy_instruction(milestone: str, known: Sequence[str], episode_instruction
     return next(s for *key, s in scored if tuple(key) == best)
 
 
+def redirection(milestone_names: Sequence[str], reached: frozenset[str] | set[str], known: Sequence[str],
+                episode_instruction: str) -> tuple[str, str]:
+    """(instruction, goal) of an instruction redirection: the sub-goal of the first missing
+    milestone that names one, asked under a sentence the policy was trained on when one serves it
+    (:func:`policy_instruction`), else under the sub-goal's own words; the goal is the last milestone
+    of the run that shares its instruction (reached, grasped, lifted: "pick up the bowl" is done once
+    the bowl is lifted). ("", first missing milestone) when no missing milestone names a sub-goal.
+    The runtime's recovery and the evolver's replay both call this, so they agree on what is asked."""
+    missing = [m for m in milestone_names if m not in reached]
+    first = next((i for i, m in enumerate(missing) if subgoal_instruction(m)), -1)
+    if first < 0:
+        return "", missing[0] if missing else ""
+    own = subgoal_instruction(missing[first])
+    goal = missing[first]
+    for m in missing[first + 1:]:
+        if subgoal_instruction(m) != own:
+            break
+        goal = m
+    return policy_instruction(missing[first], known, episode_instruction) or own, goal
+
+
+def same_instruction(a: str, b: str) -> bool:
+    """Whether two instructions are the same sentence (case and spacing aside)."""
+    return a.lower().split() == b.lower().split()
+
+
 class RedirectInstruction(Recovery):
     """Instruction redirection: the frozen policy keeps acting, under the instruction of the
     sub-goal the first missing milestone that names one gives, for at most ``steps`` steps. The
@@ -452,27 +484,21 @@ class RedirectInstruction(Recovery):
     (:func:`policy_instruction`: ``put the wine bottle on the rack`` while the bottle is
     not lifted), else the sub-goal's own words (``pick up the wine bottle``). Done when the last
     milestone of that sub-goal is reached; fails when no missing milestone names a sub-goal or the
-    steps run out.
+    steps run out. A redirection under the episode's own instruction is :meth:`redundant`: the
+    policy is already asked that, so the runtime does not start it.
     The policy does the work it can do; the harness only chooses what it is asked."""
 
     name = "redirect_instruction"
 
     def start(self, w: Window, memory: EpisodeMemory) -> None:
         super().start(w, memory)
-        missing = [m for m in w.milestone_names if m not in w.now.milestones]
-        first = next((i for i, m in enumerate(missing) if subgoal_instruction(m)), -1)
-        self.instruction = ""
-        if first >= 0:
-            self.instruction = (policy_instruction(missing[first], w.policy_instructions, w.instruction)
-                                or subgoal_instruction(missing[first]))
-        self.goal = missing[first] if first >= 0 else (missing[0] if missing else "")
-        # The sub-goal is done at the last milestone of the run that shares its instruction
-        # (reached, grasped, lifted: "pick up the bowl" is done once the bowl is lifted).
-        for m in missing[first + 1:] if first >= 0 else ():
-            if subgoal_instruction(m) != subgoal_instruction(missing[first]):
-                break
-            self.goal = m
+        self.instruction, self.goal = redirection(w.milestone_names, w.now.milestones, w.policy_instructions,
+                                                  w.instruction)
+        self._episode_instruction = w.instruction
         self._left = int(self.p["steps"])
+
+    def redundant(self) -> bool:
+        return bool(self.instruction) and same_instruction(self.instruction, self._episode_instruction)
 
     def act(self, w: Window) -> np.ndarray | PolicyUnder | None:  # type: ignore[override]
         if not self.instruction:
@@ -503,6 +529,9 @@ class Chain(Recovery):
         super().start(w, memory)
         self._i = 0
         self.parts[0].start(w, memory)
+
+    def redundant(self) -> bool:
+        return len(self.parts) == 1 and self.parts[0].redundant()
 
     def act(self, w: Window) -> np.ndarray | None:
         while self._i < len(self.parts):
@@ -581,7 +610,8 @@ RECOVERIES: dict[str, RecoverySpec] = {
             "release_steps": _i(15, 1, 60, "most steps spent opening"),
         }, LowerUntilSupportedThenRelease.__doc__ or ""),
         RecoverySpec("redirect_instruction", RedirectInstruction, {
-            "steps": _i(60, 5, 80, "steps the policy acts under the sub-goal's instruction"),
+            "steps": _i(150, 5, 160, "steps the policy acts under the sub-goal's instruction (at most the "
+                                     "redirection cap, services/harness/runtime/limits.py)"),
         }, RedirectInstruction.__doc__ or ""),
         RecoverySpec("retreat_until_separated", RetreatUntilSeparated, {
             "distance": _f(0.06, 0.0, 0.3, "grip site to object box (m) that counts as separated"),
