@@ -508,6 +508,10 @@ TRAINED = ("open the middle drawer of the cabinet", "open the top drawer and put
     ("open(wooden_cabinet_1_top_region)", "", "open the top drawer and put the bowl inside"),
     ("turnon(flat_stove_1)", "", "turn on the stove"),
     ("close(wooden_cabinet_1_top_region)", "", ""),
+    # A sentence on another part of the fixture or target serves nothing.
+    ("open(wooden_cabinet_1_bottom_region)", "open the bottom drawer of the cabinet", ""),
+    ("on(akita_black_bowl_1,wooden_cabinet_1_bottom_side)", "", ""),
+    ("on(akita_black_bowl_1,wooden_cabinet_1_top_side)", "", "put the bowl on top of the cabinet"),
     # Nothing the policy was trained on moves a plate by picking it.
     ("grasped(plate_1)", "", ""),
 ])

@@ -395,6 +395,9 @@ _PHRASE_ENDS = frozenset({"on", "in", "into", "onto", "inside", "to", "of", "at"
 _PICK_KINDS = frozenset({"reached", "grasped", "lifted"})
 _PLACE_KINDS = frozenset({"above", "on", "in", "released"})
 _PICK_PLACE_KINDS = _PICK_KINDS | _PLACE_KINDS
+#: Words that pick one part of a fixture ("the middle drawer", "on top of the cabinet"): a sentence
+#: naming a part the sub-goal's fixture or target does not name acts on another part.
+_PARTS = frozenset({"top", "middle", "bottom", "upper", "lower", "left", "right", "front", "back"})
 
 
 def _parse(sentence: str) -> tuple[str, list[str], list[str]]:
@@ -417,7 +420,9 @@ def policy_instruction(milestone: str, known: Sequence[str], episode_instruction
     on the rack``; the redirection ends once the object is lifted, before the trained placement); a
     placement (above, on, in, released) by one on the same object and target; an articulation
     (open, close, turnon, turnoff) by one with the same verb that shares the most words with the
-    fixture, its object phrase counting double. Ties go to the sentence sharing more words with the
+    fixture, its object phrase counting double. A sentence that names a part (top, middle, bottom,
+    ...) the target or fixture does not name serves nothing: "open the middle drawer" does not open
+    the bottom one. Ties go to the sentence sharing more words with the
     episode's own instruction, then to the first in order."""
     kind, raw = _milestone_parts(milestone)
     args = [_words(a).split() for a in raw]
@@ -433,11 +438,13 @@ def policy_instruction(milestone: str, known: Sequence[str], episode_instruction
             if verb not in ("put", "place", "pick up") or not obj or obj[-1] != args[0][-1] or not set(obj) <= set(args[0]):
                 continue
             if kind in _PLACE_KINDS:
-                if len(args) < 2 or not set(args[1]) & set(after):
+                if len(args) < 2 or not set(args[1]) & set(after) or (set(after) & _PARTS) - set(args[1]):
                     continue
             score = 0
         elif kind in ("open", "close", "turnon", "turnoff"):
             if verb != {"turnon": "turn on", "turnoff": "turn off"}.get(kind, kind):
+                continue
+            if (set(obj) | set(after)) & _PARTS - set(args[0]):
                 continue
             score = 2 * len(set(args[0]) & set(obj)) + len(set(args[0]) & set(after))
             if score == 0:
