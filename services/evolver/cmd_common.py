@@ -31,7 +31,6 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", type=Path, default=None, help="report directory (default <store>/report)")
     p.add_argument("--gateway", default=None, help="use a running stack's gateway (with --registry)")
     p.add_argument("--registry", default=None, help="critic service address of that stack")
-    add_policy_worker_arg(p)
     p.add_argument("--model", default=DEFAULT_POLICY, help=f"the frozen policy (default {DEFAULT_POLICY})")
     p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
                    help=f"actions of each chunk executed per policy call (default {EXECUTE_STEPS}, the VLA's own)")

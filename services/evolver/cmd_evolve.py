@@ -18,8 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from services.common.progress import PhaseBars, add_progress_option
-from services.evolver.cmd_common import (add_run_args, add_search_args, evolve_config, run_config, tasks_of,
-                                         with_policy_instructions)
+from services.evolver.cmd_common import (add_policy_worker_arg, add_run_args, add_search_args, evolve_config,
+                                         run_config, tasks_of, with_policy_instructions)
 from services.evolver.evolve import Evolution
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -57,6 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="zetta evolve", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     add_run_args(p)
+    add_policy_worker_arg(p)
     add_search_args(p)
     p.add_argument("--name", default="evolved", help="harness name prefix (versions are <name>-<task>@N)")
     a = p.parse_args(argv)
