@@ -49,10 +49,15 @@ def add_policy_worker_arg(p: argparse.ArgumentParser) -> None:
                         "redirection on a success counts as a false positive)")
 
 
-def with_policy_instructions(cfg: EvolveConfig, address: str, model: str) -> EvolveConfig:
-    """``cfg`` with the instructions the frozen policy was trained on (ListModels at ``address``)."""
+def with_policy_instructions(cfg: EvolveConfig, instructions: tuple[str, ...]) -> EvolveConfig:
+    """``cfg`` with the instructions the frozen policy was trained on (from :func:`trained_instructions`)."""
+    return dataclasses.replace(cfg, policy_instructions=instructions)
+
+
+def trained_instructions(address: str, model: str) -> tuple[str, ...]:
+    """The instructions ``model`` was trained on (ListModels at ``address``), asked once per command."""
     try:
-        return dataclasses.replace(cfg, policy_instructions=policy_instructions(address, model))
+        return policy_instructions(address, model)
     except RuntimeError as exc:
         raise SystemExit(f"zetta evolve: {exc}") from None
 

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from services.common.progress import PhaseBars, add_progress_option
 from services.evolver.cmd_common import (add_policy_worker_arg, add_run_args, add_search_args, evolve_config,
-                                         run_config, tasks_of, with_policy_instructions)
+                                         run_config, tasks_of, trained_instructions,
+                                         with_policy_instructions)
 from services.evolver.evolve import Evolution
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -69,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with stop_on_sigterm(), endpoints(a.gateway, a.registry, a.model, a.env_workers, a.concurrency,
                                           store_dir / "stack", a.video, a.policy_worker) as ep:
-            cfg = with_policy_instructions(cfg, ep.policy, a.model)
+            cfg = with_policy_instructions(cfg, trained_instructions(ep.policy, a.model))
             registry = RegistryClient(ep.registry)
             try:
                 Evolution(cfg, store, run_config(a, ep.gateway), registry, bars).run()

@@ -31,7 +31,7 @@ from services.common.progress import PhaseBars, add_progress_option
 from services.common.provenance import git_source
 from services.evolver import results
 from services.evolver.cmd_common import (add_policy_worker_arg, add_search_args, evolve_config, publish_dir,
-                                         with_policy_instructions)
+                                         trained_instructions, with_policy_instructions)
 from services.evolver.evolve import EvolveConfig, Evolution, evaluate_transfer
 from services.evolver.registry_client import RegistryClient
 from services.evolver.report import write_report
@@ -134,13 +134,13 @@ def main(argv: Sequence[str]) -> int:
             run = RunConfig(gateway=ep.gateway, model=a.model, execute_steps=a.execute_steps, max_steps=a.max_steps,
                             concurrency=a.concurrency)
             registry = RegistryClient(ep.registry)
+            known = trained_instructions(ep.policy, a.model)
             try:
                 for suite in suites:
                     store = RolloutStore(a.out / suite)
                     t0 = time.time()
                     # One registry serves every suite: the suite in the name keeps each task's versions apart.
-                    cfg = with_policy_instructions(evolve_config(a, suite, tasks, f"evolved-{suite}"), ep.policy,
-                                                   a.model)
+                    cfg = with_policy_instructions(evolve_config(a, suite, tasks, f"evolved-{suite}"), known)
                     try:
                         Evolution(cfg, store, run, registry, bars).run()
                     except StoreError as exc:
