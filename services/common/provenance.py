@@ -67,8 +67,8 @@ def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
     if doc.get("code_changed"):
         change = doc["code_changed"]
         lines.append(f"- **The code that measures it changed after this run** (at commit `{change['commit'][:12]}`): "
-                     f"the figures reproduce at commit `{commit[:12]}`, not at `{change['commit'][:12]}` or later, until "
-                     f"the command above is rerun. {change.get('note', '')}".rstrip())
+                     f"the figures were measured at commit `{commit[:12]}` and need not reproduce at `{change['commit'][:12]}` "
+                     f"or later until the command above is rerun. {change.get('note', '')}".rstrip())
     return "\n".join(lines) + "\n"
 
 

@@ -147,7 +147,7 @@ def test_a_result_whose_code_changed_says_so_at_the_top_of_its_page() -> None:
     measured = doc["source"]["commit"]
     page = gen.render("harness-cost", code_changed(doc, "c" * 40, "rerun: zetta y"))
     assert (f"**The code that measures it changed after this run** (at commit `cccccccccccc`): the figures "
-            f"reproduce at commit `{measured[:12]}`") in page and "rerun: zetta y" in page
+            f"were measured at commit `{measured[:12]}`") in page and "rerun: zetta y" in page
     with pytest.raises(ValueError):
         code_changed(doc, measured)
 
