@@ -32,6 +32,7 @@ from services.common.provenance import RESULTS_DIR, page_header, superseded  # n
 TOPICS: dict[str, tuple[str, str]] = {
     "vla": ("services.policy_worker.vla.results", "render"),
     "evolution": ("services.evolver.results", "page"),
+    "evolution-goal": ("services.evolver.results", "page_own_suite"),
     "throughput": ("bench.bench_report", "page"),
     "bench-rollout": ("bench.bench_rollout", "page"),
     "harness-cost": ("bench.bench_harness", "page"),

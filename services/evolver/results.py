@@ -410,3 +410,10 @@ def render(data: Mapping[str, Any]) -> str:
 def page(data: Mapping[str, Any]) -> str:
     """docs/results/evolution.md: the generated page of a published results file."""
     return page_header("evolution", "Evolution: bare policy, evolved harness, do-nothing control", data) + "\n" + render(data)
+
+
+def page_own_suite(data: Mapping[str, Any]) -> str:
+    """docs/results/evolution-goal.md: the same loops on the suite the policy was made for, where it
+    succeeds alone most of the time, so the page shows what the loops do for a competent policy."""
+    return (page_header("evolution-goal", "Evolution on the policy's own suite: bare policy, evolved harness, "
+                        "do-nothing control", data) + "\n" + render(data))
