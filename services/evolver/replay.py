@@ -39,18 +39,20 @@ WINDOW = 64
 def frames(trace: Trace) -> list[Frame]:
     """The trace as the runtime's Frames: one per env step when it recorded every step."""
     if trace.step_obs:
-        return _frames(trace.step_obs, list(range(trace.steps)), [None, *trace.actions], trace.milestone_names)
+        return _frames(trace.step_obs, list(range(trace.steps)), [None, *trace.actions], trace.milestone_names,
+                       trace.instruction)
     last_action: dict[int, np.ndarray] = {}
     for i, k in enumerate(trace.action_frame):
         last_action[int(k)] = trace.actions[i]
     return _frames(trace.obs, [int(s) for s in trace.frame_step], [last_action.get(k) for k in range(trace.frames)],
-                   trace.milestone_names)
+                   trace.milestone_names, trace.instruction)
 
 
 def _frames(series: Mapping[str, np.ndarray], steps: list[int], actions: list[np.ndarray | None],
-            names: list[str]) -> list[Frame]:
+            names: list[str], instruction: str) -> list[Frame]:
     """Frames over ``series`` ([K, ...] per tensor) at env ``steps``, each with the action that led to
-    it and the milestones observed up to it."""
+    it and the milestones observed up to it. The perception tool's noise is drawn as the runtime drew
+    it in that episode: seeded from the reset state and the episode's instruction."""
     mu = series.get("milestones")
     reached = (np.maximum.accumulate(mu[:, : len(names)] > 0.5, axis=0) if mu is not None and len(steps)
                else np.zeros((len(steps), len(names)), dtype=bool))
@@ -59,7 +61,7 @@ def _frames(series: Mapping[str, np.ndarray], steps: list[int], actions: list[np
     for k, step in enumerate(steps):
         obs = {name: v[k] for name, v in series.items()}
         if perception is None:
-            perception = Perception(episode_seed(obs, ""))
+            perception = Perception(episode_seed(obs, instruction))
         out.append(Frame(step=step, obs=signals.visible(obs), action=actions[k],
                          milestones=frozenset(n for n, r in zip(names, reached[k]) if r),
                          perceive=perception.sensor(obs)))

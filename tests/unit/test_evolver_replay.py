@@ -145,3 +145,38 @@ def test_a_redirection_the_runtime_would_not_start_is_no_false_positive() -> Non
     # the runtime would not start it either, so it catches nothing.
     same = ReplayCase(dataclasses.replace(miss, instruction="put the a on the b"), 40, referenced=False)
     assert score_critic(nothing_reached, {}, same, [], own, 40, redirect=redirect) is None
+
+
+def test_replayed_frames_perceive_what_the_runtime_perceived() -> None:
+    """The perception tool's noise is seeded per episode from the reset state and the instruction:
+    a replay that drew it with another seed judged critics on detections the runtime never saw (the
+    repair search's coverage and false positives then did not hold in closed loop)."""
+    from pathlib import Path
+
+    from services.harness.package.loader import load_package
+    from services.harness.runtime.engine import HarnessRuntime
+    from services.harness.runtime.library import tools as t
+
+    def obs(s: int) -> dict[str, np.ndarray]:
+        o = _obs(s)
+        o["task_object_bbox"] = np.array([0.3, -0.02, 0.1, 0.34, 0.02, 0.14], np.float32)
+        o["milestones_reached"] = np.zeros(2, np.float32)
+        return o
+
+    rec = TraceRecorder(["reached(a)", "grasped(a)"], "put the a on the b")
+    rec.frame(0, obs(0))
+    rec.step(obs(0))
+    for end in range(EVERY, STOP + 1, EVERY):
+        for s in range(end - EVERY + 1, end + 1):
+            rec.step(obs(s))
+        rec.frame(end, obs(end), np.zeros((EVERY, 7), np.float32))
+    trace = rec.finish()
+    root = Path(__file__).resolve().parents[2]
+    runtime = HarnessRuntime(load_package(root / "examples" / "harnesses" / "libero-goal-pick-place"), sandboxed=False)
+    runtime.start(trace.instruction, trace.milestone_names)
+    replayed = frames(trace)
+    for k in range(trace.steps):
+        runtime.step({n: v[k] for n, v in trace.step_obs.items()}, None if k == 0 else np.zeros(7, np.float32),
+                     frozenset())
+        assert t.eef_object_dist(runtime._frames[-1]) == t.eef_object_dist(replayed[k]), k
+    runtime.close()
