@@ -35,6 +35,7 @@ COMPATIBLE: dict[str, tuple[str, ...]] = {
     "grasp_lost": ("regrasp", "release_and_restage"),
     "failed_acquisition": ("regrasp", "release_and_restage"),
     "non_approach": ("pregrasp+regrasp", "redirect_instruction", "pregrasp", "regrasp"),
+    "hovering_unacquired": ("regrasp", "pregrasp+regrasp", "release_and_restage"),
     "approach_wrong_object": ("pregrasp", "retreat_until_separated"),
     "drift": ("regrasp", "release_and_restage"),
     "held_near_target": ("lower_until_supported_then_release", "fine_alignment"),

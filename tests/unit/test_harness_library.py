@@ -113,6 +113,17 @@ def test_non_approach_when_the_hand_hovers_short_of_the_object() -> None:
     assert not holds("non_approach", window([state(eef=(0.02, 0.015, 0.99), grasp=1.0)] * 20), horizon=20)
 
 
+def test_hovering_unacquired_when_the_hand_bobs_over_the_object_without_closing() -> None:
+    bob = [state(eef=(0.02, 0.015, 0.99 + 0.03 * (i % 2))) for i in range(45)]  # 4-7 cm over the top
+    assert holds("hovering_unacquired", window(bob))
+    assert not holds("hovering_unacquired", window(bob[:44]))  # not for horizon frames yet
+    assert not holds("hovering_unacquired", window(bob[:-1] + [state(eef=(0.3, 0.015, 1.2))]))  # moved off
+    assert not holds("hovering_unacquired", window(bob[:-1] + [state(eef=(0.02, 0.015, 0.96), grasp=1.0)]))
+    ms = [set()] * 44 + [{"grasped(obj)"}]
+    assert not holds("hovering_unacquired", window(bob, milestones=ms))
+    assert not holds("hovering_unacquired", window(bob), near=0.03)
+
+
 def test_approach_wrong_object_when_closing_in_on_another_object() -> None:
     other = (-0.3, 0.0, 0.93)
     toward_other = [state(eef=(-0.3 + 0.1 - 0.005 * i, 0.0, 1.0), others=[other]) for i in range(15)]

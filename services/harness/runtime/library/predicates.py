@@ -106,6 +106,24 @@ def non_approach(w: Window, p: Mapping[str, float]) -> Details:
     return {"eef_object_dist": dist, "gain": before - dist, "steps": float(n)}
 
 
+def hovering_unacquired(w: Window, p: Mapping[str, float]) -> Details:
+    """The hand has stayed within ``near`` of the object's box for ``horizon`` frames without
+    grasping it and without a new milestone: it hovers over the object (a policy switching between
+    descending and re-aligning bobs there) and never closes on it."""
+    if (back := _look_back(w, p)) is None:
+        return None
+    n, first, now = back
+    if now.milestones - first.milestones:
+        return None
+    farthest = 0.0
+    for f in w.frames[-n:]:
+        dist = t.eef_object_dist(f)
+        if t.grasped(f) or dist is None or dist > p["near"]:
+            return None
+        farthest = max(farthest, dist)
+    return {"farthest": farthest, "steps": float(n)}
+
+
 def articulation_stalled(w: Window, p: Mapping[str, float]) -> Details:
     """An articulation stage (open/close a drawer, turn a knob) is not progressing: over the last
     ``horizon`` frames, all in that stage, no new milestone was reached, the hand came less than
@@ -314,6 +332,10 @@ PREDICATES: dict[str, PredicateSpec] = {
             "near": _f(0.015, 0.0, 0.2, "grip site to object box (m) that counts as arrived"),
             "min_gain": _f(0.01, 0.0, 0.2, "how much closer (m) the hand must have come"),
         }, non_approach.__doc__ or "", holding=False),
+        PredicateSpec("hovering_unacquired", hovering_unacquired, {
+            "horizon": _i(45, 5, 200, "frames the hand must have stayed near the object"),
+            "near": _f(0.12, 0.0, 0.3, "grip site to object box (m) that counts as at the object"),
+        }, hovering_unacquired.__doc__ or "", holding=False),
         PredicateSpec("approach_wrong_object", approach_wrong_object, {
             "horizon": _i(15, 2, 200, "frames looked back"),
             "near": _f(0.08, 0.01, 0.3, "distance (m) to the other object that counts as approaching it"),
