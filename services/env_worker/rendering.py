@@ -362,10 +362,10 @@ class SceneRenderer:
         self._option = mujoco.MjvOption()
         # As robosuite's offscreen renderer: visual meshes (group 1) on, collision meshes (group 0) off.
         self._option.geomgroup[0], self._option.geomgroup[1] = 0, 1
-        # No sites: they are visualization markers that robosuite hides (alpha 0) at reset, and
-        # ``site_rgba`` lives in the model, which slots share, and whether a model's sites are hidden
-        # depends on which resets ran on it: the same state rendered differently depending on which
-        # model a slot held (the "Replays" paragraph of docs/evolution.md).
+        # No sites: they are visualization markers robosuite hides (alpha 0) at reset. ``site_rgba``
+        # lives in the model slots share, and whether a model's sites are hidden depends on which
+        # resets ran on it, so drawing them rendered one state differently on different models
+        # (the "Replays" paragraph of docs/evolution.md).
         self._option.sitegroup[:] = 0
         self._perturb = mujoco.MjvPerturb()
         self.frames = 0

@@ -3,6 +3,8 @@ one per env step, so a horizon of n frames spans n steps as at runtime (not n po
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -25,16 +27,16 @@ def _obs(t: int) -> dict[str, np.ndarray]:
             "agentview_image": np.zeros((4, 4, 3), np.uint8)}
 
 
-def record(every_step: bool) -> Trace:
-    rec = TraceRecorder(["reached(a)", "grasped(a)"])
-    rec.frame(0, _obs(0))
+def record(every_step: bool, obs: Callable[[int], dict[str, np.ndarray]] = _obs, instruction: str = "") -> Trace:
+    rec = TraceRecorder(["reached(a)", "grasped(a)"], instruction)
+    rec.frame(0, obs(0))
     if every_step:
-        rec.step(_obs(0))
+        rec.step(obs(0))
     for t in range(EVERY, STEPS + 1, EVERY):
         if every_step:
             for s in range(t - EVERY + 1, t + 1):
-                rec.step(_obs(s))
-        rec.frame(t, _obs(t), np.zeros((EVERY, 7), np.float32))
+                rec.step(obs(s))
+        rec.frame(t, obs(t), np.zeros((EVERY, 7), np.float32))
     return rec.finish()
 
 
@@ -163,14 +165,7 @@ def test_replayed_frames_perceive_what_the_runtime_perceived() -> None:
         o["milestones_reached"] = np.zeros(2, np.float32)
         return o
 
-    rec = TraceRecorder(["reached(a)", "grasped(a)"], "put the a on the b")
-    rec.frame(0, obs(0))
-    rec.step(obs(0))
-    for end in range(EVERY, STOP + 1, EVERY):
-        for s in range(end - EVERY + 1, end + 1):
-            rec.step(obs(s))
-        rec.frame(end, obs(end), np.zeros((EVERY, 7), np.float32))
-    trace = rec.finish()
+    trace = record(every_step=True, obs=obs, instruction="put the a on the b")
     root = Path(__file__).resolve().parents[2]
     runtime = HarnessRuntime(load_package(root / "examples" / "harnesses" / "libero-goal-pick-place"), sandboxed=False)
     runtime.start(trace.instruction, trace.milestone_names)
