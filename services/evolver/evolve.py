@@ -206,6 +206,7 @@ class Evolution:
                                       "successes": prof.successes, "episodes": len(rollouts),
                                       "manifest": prof.manifest()}, ident=f"{self.cfg.suite}/{task}/{round_}")
         repairs: list[ClusterRepair] = []
+        skipped: list[list[int]] = []
         if prof.failures:
             traces = [self.store.trace(f.rollout) for f in prof.failures]
             index = self._reference_index(task, rollouts, traces)
@@ -213,7 +214,9 @@ class Evolution:
             budget = max(r.steps for r in rollouts)
             clusters = cluster_failures(prof.failures, traces, eods, index, budget, self.cfg.cluster)
             succ_traces = [self.store.trace(r) for r in rollouts if r.success] + self.nominal_successes()
-            for cl in clusters[: self.cfg.max_clusters]:
+            chosen, small = clusters_to_repair(clusters, self.cfg.max_clusters, self.cfg.gate.min_cluster)
+            skipped = [cl.seeds for cl in small]
+            for cl in chosen:
                 idx = [prof.failures.index(f) for f in cl.members]
                 repairs.append(self._repair_cluster(task, round_, cur, cl, [traces[i] for i in idx],
                                                     [eods[i] for i in idx], succ_traces, index))
@@ -225,6 +228,7 @@ class Evolution:
         self.store.record("round_done", {"suite": self.cfg.suite, "task": task, "round": round_, "wall_s": t_end - t0,
                                          "phases_s": {"profile": t_profile - t0, "repair": t_repair - t_profile,
                                                       "gate": t_end - t_repair},
+                                         "skipped_clusters": skipped,
                                          "patches": sum(len(r.stack) for r in passing)})
 
     def _reference_index(self, task: str, rollouts: Sequence[Rollout], failures: Sequence[Trace] = ()) -> SuccessIndex:
@@ -508,6 +512,16 @@ class Evolution:
                                     "split": self.store.split_manifest(self.cfg.suite, task),
                                     "wall_s": float(before.get("wall_s", 0.0)) + time.time() - t0},
                           ident=f"{self.cfg.suite}/{task}")
+
+
+def clusters_to_repair(clusters: Sequence[Cluster], max_clusters: int, min_cluster: int
+                       ) -> tuple[list[Cluster], list[Cluster]]:
+    """The clusters Loop 2 repairs (the largest ``max_clusters`` of at least ``min_cluster`` seeds) and
+    the smaller ones it leaves: the gate's historical regression refuses a cluster below
+    ``min_cluster`` whatever its repair does, so searching one spends validation rollouts on a
+    stack that cannot be admitted. The next round clusters their failures again with its own."""
+    big = [c for c in clusters if len(c.members) >= min_cluster]
+    return big[:max_clusters], [c for c in clusters if len(c.members) < min_cluster]
 
 
 def step_rank(reached: int, interventions: Sequence[dict[str, Any]], recovery_steps: int) -> tuple[int, bool, int]:

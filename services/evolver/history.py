@@ -76,7 +76,8 @@ def _curve_state(curves: Sequence[dict[str, Any]]) -> tuple[int, int]:
 
 
 def round_rows(store: RolloutStore, suite: str) -> list[dict[str, Any]]:
-    """One row per task and round with a recorded profile: dev success, clusters repaired, candidates,
+    """One row per task and round with a recorded profile: dev success, clusters repaired (and those
+    left for being below the gate's minimum size), candidates,
     the gate's numbers when a candidate reached it, the admitted version and the wall time."""
     ev = {k: store.events(k) for k in ("cluster", "cluster_versions", "validation", "consolidation", "gate",
                                        "admitted", "round_done")}
@@ -90,7 +91,8 @@ def round_rows(store: RolloutStore, suite: str) -> list[dict[str, Any]]:
         done = _of(ev["round_done"], suite, task, round_)
         admitted = _of(ev["admitted"], suite, task, round_)
         rows.append({"task": task, "round": round_, "harness": p["harness"], "profile": [p["successes"], p["episodes"]],
-                     "clusters": len(ids), "repaired": repaired, "solved": solved,
+                     "clusters": len(ids), "small": len(done[-1].get("skipped_clusters", [])) if done else 0,
+                     "repaired": repaired, "solved": solved,
                      "candidates": _candidates([v for v in ev["validation"] if v["cluster"] in ids],
                                                _of(ev["consolidation"], suite, task, round_), gate),
                      "gate": gate, "admitted": admitted[-1]["ref"] if admitted else "",

@@ -329,6 +329,11 @@ def _wall_cell(r: Mapping[str, Any]) -> str:
     return _seconds(r.get("wall_s")) + (f" ({parts})" if p else "")
 
 
+def _clusters_cell(r: Mapping[str, Any]) -> str:
+    """'2 (+3 small)': the clusters repaired, then those left below the gate's minimum size."""
+    return f"{r['clusters']}" + (f" (+{r['small']} small)" if r.get("small") else "")
+
+
 def render_history(data: Mapping[str, Any]) -> list[str]:
     """One row per suite, task and round: what each loop did and what the gate measured."""
     if not any("history" in body for body in data.get("suites", {}).values()):
@@ -339,7 +344,7 @@ def render_history(data: Mapping[str, Any]) -> list[str]:
              "admitted | wall s (profile / repair / gate) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for suite, r in rows:
         lines.append(f"| {suite} | {r['task']} | {r['round']} | {r['harness']} | {_pair(r['profile'])} | "
-                     f"{r['clusters']} | {r['repaired']} / {r['solved']} | {_candidates_cell(r['candidates'])} | "
+                     f"{_clusters_cell(r)} | {r['repaired']} / {r['solved']} | {_candidates_cell(r['candidates'])} | "
                      f"{_gate_cell(r['gate'])} | {r['admitted'] or '-'} | {_wall_cell(r)} |")
     return lines + ([] if rows else ["| (no round recorded) | | | | | | | | | | |"]) + [""]
 

@@ -103,6 +103,25 @@ def test_failures_cluster_by_mechanism_with_a_member_medoid() -> None:
         assert c.medoid_failure in c.members
 
 
+def test_clusters_under_the_gate_minimum_are_left_unrepaired() -> None:
+    """Loop 2 takes up the largest clusters the regression gate could pass (3 seeds or more), up to
+    its budget, and leaves the smaller ones, which no repair could get admitted."""
+    from services.evolver.evolve import clusters_to_repair
+
+    idx = index()
+    fails, traces = [], []
+    for s, (m, kind) in enumerate([("reached(a)", "miss")] * 4 + [("on(a,b)", "drop")] * 2):
+        fails.append(Failure(rollout(s, m), m))
+        traces.append(make_trace(kind, s))
+    clusters = cluster_failures(fails, traces, [t_eod(t, idx) for t in traces], idx, budget=60)
+    assert [len(c.members) for c in clusters] == [4, 2]
+    chosen, small = clusters_to_repair(clusters, max_clusters=3, min_cluster=3)
+    assert [c.cid for c in chosen] == ["K1"] and [c.cid for c in small] == ["K2"]
+    chosen, small = clusters_to_repair(clusters, max_clusters=3, min_cluster=2)
+    assert [c.cid for c in chosen] == ["K1", "K2"] and small == []
+    assert [c.cid for c in clusters_to_repair(clusters, max_clusters=1, min_cluster=1)[0]] == ["K1"]
+
+
 def _case(**kw: object) -> Case:
     base = dict(trace=make_trace("drop", 1), eod=EOD(22, 44, 9.0, 3, True), success=False, m_star="on(a,b)",
                 fired={}, detectable={"grasp_lost": 46}, window=10)

@@ -56,7 +56,8 @@ def _round_one(store: RolloutStore) -> None:
 
 
 def _round_two(store: RolloutStore) -> None:
-    """Task 6, round 2: the gate refuses a candidate whose held-out success is no better."""
+    """Task 6, round 2: two clusters under the gate's minimum are left; the gate refuses a candidate
+    whose held-out success is no better."""
     store.record("profile", {"suite": SUITE, "task": "6", "round": 2, "harness": "e-6@1", "successes": 3,
                              "episodes": 5})
     verdict = Verdict(False, "held-out 2/3 is not a strict improvement over the current harness's 2/3",
@@ -64,7 +65,8 @@ def _round_two(store: RolloutStore) -> None:
     store.record("gate", {"suite": SUITE, "task": "6", "round": 2, "candidate": "c@5", "verdict": verdict},
                  ident="fp2")
     store.record("round_done", {"suite": SUITE, "task": "6", "round": 2, "wall_s": 40.0,
-                                "phases_s": {"profile": 10.0, "repair": 20.0, "gate": 10.0}})
+                                "phases_s": {"profile": 10.0, "repair": 20.0, "gate": 10.0},
+                                "skipped_clusters": [[16, 17], [18]]})
 
 
 def experiment(tmp_path: Path, transfer: bool = True) -> dict[str, Any]:
@@ -149,6 +151,8 @@ def test_history_per_task_and_round_from_the_recorded_events(tmp_path: Path) -> 
     assert ("| libero_goal_task | 6 | 1 | bare | 1/4 | 2 | 1 / 1 | 3 run: 1 validated; refused: consolidation 1, "
             "validation 2 | regression 3/3, control (dev) 0/4, held-out 3/3 vs current 1/3 (bare 1/3): admitted | "
             "e-6@1 | 100 (20 / 50 / 30) |") in text
+    assert (first["small"], second["small"]) == (0, 2)
+    assert "| libero_goal_task | 6 | 2 | e-6@1 | 3/5 | 0 (+2 small) | 0 / 0 |" in text
     assert "held-out 2/3 vs current 2/3 (bare 1/3): refused (held-out) | - | 40 (10 / 20 / 10) |" in text
 
 
