@@ -3,11 +3,12 @@ its interval.
 
 Slow: ``make test-slow``. On a 2-core machine, oracle demos with frames, then training, then 2 x 50
 closed-loop episodes take 80 minutes to well over two hours (the machine that made the shipped
-checkpoint, 2026-12-04: 80 min; another, 2026-12-06: clean demos 2.6 s an episode, training 0.24 s
-a step); start it on a quiet machine with time for it. Both checkpoints are evaluated on the
-same held-out seeds (init states the demonstrations never used) and their Wilson intervals must
-overlap. ``ZETTA_REPRODUCE_DIR`` keeps the demonstrations and checkpoints there instead of in a
-temporary directory, so a run that is cut off resumes where it stopped (the pipeline's own resume).
+checkpoint, 2026-12-04: 80 min of pipeline; a run of this test, 2026-12-06: 93 min of pipeline and
+5 min of evaluation, shipped 34/50 and reproduced 37/50); start it on a quiet machine with time
+for it. Both checkpoints are evaluated on the same held-out seeds (init states the demonstrations
+never used) and their Wilson intervals must overlap. ``ZETTA_REPRODUCE_DIR`` keeps the
+demonstrations and checkpoints there instead of in a temporary directory, so a run that is cut off
+resumes where it stopped (the pipeline's own resume).
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ def test_zetta_train_reproduces_shipped_success(tmp_path: Path, monkeypatch: pyt
     for key, value in pipe.items():
         args += [f"--{key.replace('_', '-')}", str(value)]
     assert main(args) == 0
-    trained = set(training_init_states(shipped_ck)["libero_goal"])
+    # A checkpoint trained on sampled layouts only used none of libero_goal's init states.
+    trained = set(training_init_states(shipped_ck).get("libero_goal", []))
     seeds = [s for s in range(50) if s not in trained][:5]
     tasks = list(range(10))
     shipped = evaluate(DEFAULT_POLICY, "libero_goal", tasks, seeds, str(tmp_path / "a.jsonl"),
@@ -53,6 +55,7 @@ def test_zetta_train_reproduces_shipped_success(tmp_path: Path, monkeypatch: pyt
                     execute_steps=pipe["execute_steps"], env={"ZETTA_VLA_CHECKPOINT": str(out)})
     ks, kn = sum(r.get("success", False) for r in shipped), len(shipped)
     os_, on = sum(r.get("success", False) for r in ours), len(ours)
+    print(f"shipped {ks}/{kn}, reproduced {os_}/{on} on libero_goal, init states {seeds}")
     lo, hi = wilson(ks, kn)
     lo2, hi2 = wilson(os_, on)
     assert lo2 <= hi and lo <= hi2, (ks, kn, os_, on)  # the two intervals overlap
