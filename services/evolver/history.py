@@ -77,8 +77,8 @@ def _curve_state(curves: Sequence[dict[str, Any]]) -> tuple[int, int]:
 
 def round_rows(store: RolloutStore, suite: str) -> list[dict[str, Any]]:
     """One row per task and round with a recorded profile: dev success, clusters repaired (and those
-    left for being below the gate's minimum size), candidates,
-    the gate's numbers when a candidate reached it, the admitted version and the wall time."""
+    left for being below the gate's minimum size), candidates, the gate's numbers when a candidate
+    reached it, the admitted version and the wall time."""
     ev = {k: store.events(k) for k in ("cluster", "cluster_versions", "validation", "consolidation", "gate",
                                        "admitted", "round_done")}
     rows = []
