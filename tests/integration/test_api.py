@@ -337,6 +337,24 @@ async def test_renew_sessions_extends_lease(gw: Gateway) -> None:
     await group.close()
 
 
+async def test_keepalive_renews_until_the_gateway_closes(stack: LocalStack) -> None:
+    """A keepalive group outlives its lease, and closing the gateway (not the group) stops the
+    renewals with it: none is left calling a closed channel."""
+    gateway = Gateway(stack.gateway_address)
+    group = await gateway.create_sessions("robosuite", n=1, env_config=LIFT, lease_seconds=3)
+    first = group.infos[0].lease_expires_unix_ms
+    await asyncio.sleep(4.5)
+    listed = {s.session_id: s for s in await gateway.list_sessions()}
+    assert listed[group.ids[0]].state == types_pb2.SESSION_STATE_RUNNING
+    assert listed[group.ids[0]].lease_expires_unix_ms > first
+    renewing = group._keepalive
+    assert renewing is not None and not renewing.done()
+    await gateway.close()
+    assert renewing.cancelled()
+    async with Gateway(stack.gateway_address) as other:
+        await other.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=group.ids))
+
+
 # ---- the SDK ---------------------------------------------------------------------------------------
 
 

@@ -15,7 +15,7 @@ the same event-loop turn (e.g. from ``asyncio.gather`` over many sessions) leave
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -287,6 +287,7 @@ class Gateway:
         self._channel = gateway_channel(address, CHANNEL_OPTIONS, token, tls_ca, client_cert, client_key)
         self._stub = gateway_pb2_grpc.GatewayServiceStub(self._channel)
         self._batcher = _Batcher(self)
+        self._background: set[asyncio.Task[None]] = set()
 
     async def __aenter__(self) -> "Gateway":
         return self
@@ -329,8 +330,20 @@ class Gateway:
         """Sessions in the registry."""
         return list((await self.call("ListSessions", gateway_pb2.ListSessionsRequest(env_family=env_family))).sessions)
 
+    def run_in_background(self, coro: Coroutine[Any, Any, None]) -> "asyncio.Task[None]":
+        """A task that uses this channel: :meth:`close` cancels it before the channel goes, so it
+        never calls a closed channel (lease renewals of groups nobody closed)."""
+        task = asyncio.create_task(coro)
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
+        return task
+
     async def close(self) -> None:
-        """Close the channel."""
+        """Stop this channel's background tasks, then close the channel."""
+        tasks = list(self._background)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
         await self._channel.close()
 
 
@@ -379,7 +392,7 @@ class SessionGroup:
                 except ZettaError:
                     return
 
-        self._keepalive = asyncio.create_task(renew())
+        self._keepalive = self.gateway.run_in_background(renew())
 
     async def reset(
         self,
