@@ -10,6 +10,7 @@ import asyncio
 import time
 import urllib.request
 
+import grpc
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
@@ -351,6 +352,25 @@ async def test_keepalive_renews_until_the_gateway_closes(stack: LocalStack) -> N
     assert renewing is not None and not renewing.done()
     await gateway.close()
     assert renewing.cancelled()
+    async with Gateway(stack.gateway_address) as other:
+        await other.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=group.ids))
+
+
+async def test_calls_on_a_closing_gateway_fail_instead_of_hanging(stack: LocalStack) -> None:
+    """A coalesced call in flight when the gateway closes, and one made after, both raise a
+    ZettaError that says to open a new Gateway; neither leaves its caller waiting forever."""
+    gateway = Gateway(stack.gateway_address)
+    group = await gateway.create_sessions("robosuite", n=2, env_config=LIFT, lease_seconds=60, keepalive=False)
+    first, second = list(group)
+    in_flight = asyncio.gather(first.reset(seed=1), second.reset(seed=2), return_exceptions=True)
+    for _ in range(3):  # the SDK coalesces the two and starts their RPC
+        await asyncio.sleep(0)
+    await gateway.close()
+    outcomes = await asyncio.wait_for(in_flight, timeout=10)
+    assert all(isinstance(o, ZettaError) and o.code == grpc.StatusCode.CANCELLED for o in outcomes), outcomes
+    with pytest.raises(ZettaError, match="open a new Gateway") as err:
+        await asyncio.wait_for(first.reset(seed=3), timeout=10)
+    assert err.value.code == grpc.StatusCode.CANCELLED
     async with Gateway(stack.gateway_address) as other:
         await other.call("CloseSessions", gateway_pb2.CloseSessionsRequest(session_ids=group.ids))
 

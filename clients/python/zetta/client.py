@@ -15,6 +15,7 @@ the same event-loop turn (e.g. from ``asyncio.gather`` over many sessions) leave
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -301,6 +302,9 @@ class Gateway:
             return await getattr(self._stub, method)(request, timeout=timeout)
         except grpc.aio.AioRpcError as err:
             raise ZettaError.from_rpc(err) from None
+        except grpc.aio.UsageError as err:
+            raise ZettaError(grpc.StatusCode.CANCELLED,
+                             f"{method} on a closed Gateway ({err}); open a new Gateway to go on") from None
 
     async def create_sessions(
         self,
@@ -644,7 +648,8 @@ class _Batcher:
         self._scheduled = False
         pending, self._pending = self._pending, {}
         for (method, _), calls in pending.items():
-            asyncio.ensure_future(self._send(method, calls))
+            task = self._gateway.run_in_background(self._send(method, calls))
+            task.add_done_callback(functools.partial(_fail_if_cancelled, method, calls))
 
     async def _send(self, method: str, calls: list[tuple[str, Any, asyncio.Future[Any]]]) -> None:
         # A session may appear once per RPC; repeats wait for the next one.
@@ -657,13 +662,29 @@ class _Batcher:
         request = self._REQUESTS[method]([c[0] for c in first], [c[1] for c in first])
         try:
             resp = await self._gateway.call(method, request)
-        except ZettaError as exc:
-            for _, _, fut in first:
-                if not fut.done():
-                    fut.set_exception(exc)
+        except Exception as exc:  # noqa: BLE001 - whatever the call raised, its callers must not hang
+            _fail(first, exc)
         else:
-            for (_, _, fut), res in zip(first, resp.results):
+            results = list(resp.results)
+            for (_, _, fut), res in zip(first, results):
                 if not fut.done():
                     fut.set_result(res)
+            _fail(first[len(results):], ZettaError(
+                grpc.StatusCode.INTERNAL, f"{method} answered {len(results)} results for {len(first)} sessions"))
         if later:
             await self._send(method, later)
+
+
+def _fail(calls: list[tuple[str, Any, "asyncio.Future[Any]"]], exc: BaseException) -> None:
+    """Fail the waiting futures of ``calls`` with ``exc`` (those already done keep their outcome)."""
+    for _, _, fut in calls:
+        if not fut.done():
+            fut.set_exception(exc)
+
+
+def _fail_if_cancelled(method: str, calls: list[tuple[str, Any, "asyncio.Future[Any]"]],
+                       task: "asyncio.Task[None]") -> None:
+    """A send cancelled by :meth:`Gateway.close` (before or during its RPC) tells every caller why."""
+    if task.cancelled():
+        _fail(calls, ZettaError(grpc.StatusCode.CANCELLED,
+                                f"the Gateway closed while {method} was in flight; open a new Gateway to go on"))
