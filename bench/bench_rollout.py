@@ -57,7 +57,7 @@ from bench import bench_sweep  # noqa: E402
 from bench.bench_report import aligned  # noqa: E402
 from bench.bench_sweep import Episode, balanced, quiet_fds  # noqa: E402
 from services.common.progress import add_progress_option, progress  # noqa: E402
-from services.common.provenance import page_header, provenance, write_results  # noqa: E402
+from services.common.provenance import machine as cpu_machine, page_header, provenance, write_results  # noqa: E402
 
 SUITE = "libero_goal"
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -308,7 +308,7 @@ def markdown_table(points: Sequence[Point]) -> str:
 
 
 def machine() -> str:
-    return f"{platform.machine()}, {os.cpu_count()} CPU cores, Python {platform.python_version()}, {platform.system()}"
+    return f"{cpu_machine()}, Python {platform.python_version()}, {platform.system()}"
 
 
 def results_doc(points: Sequence[Point], setup: dict[str, float], args: argparse.Namespace, command: str,

@@ -61,7 +61,7 @@ import numpy as np
 from bench.sweep_results import Busy, Episode, Results, Row, Usage
 from services.common.policies import DEFAULT_POLICY, policy_env_config
 from services.common.progress import add_progress_option, progress
-from services.common.provenance import RESULTS_DIR, git_source
+from services.common.provenance import RESULTS_DIR, git_source, machine as cpu_machine
 
 DEFAULT_TASK = "put_the_cream_cheese_in_the_bowl"
 SUITE = "libero_goal"
@@ -858,7 +858,7 @@ async def _gateway_hop(sessions: Any, calls: int = 200) -> dict[str, float]:
 
 def machine() -> str:
     """One line about the machine."""
-    return f"{platform.machine()}, {os.cpu_count()} CPU cores, Python {platform.python_version()}, {platform.system()}"
+    return f"{cpu_machine()}, Python {platform.python_version()}, {platform.system()}"
 
 
 def sweep(args: argparse.Namespace, log: Log) -> Results:

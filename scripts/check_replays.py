@@ -3,6 +3,7 @@
   python scripts/check_replays.py                                   # libero_goal tasks 0-9, seeds 48-49, 3 passes
   python scripts/check_replays.py --env-workers 1 --slots 4 --passes 3
   python scripts/check_replays.py --suite libero_goal_task --tasks 8 --seeds 31,32,33
+  python scripts/check_replays.py --passes 1 --against /tmp/zetta-replays-XXXX/pass0   # across two stacks
 
 Each pass runs every key as the evolver does (services/evolver/rollout.py: step-recorded rollouts,
 `--concurrency` in flight), into a store of its own. A key whose end-effector trajectory differs
@@ -56,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--env-workers", type=int, default=2)
     p.add_argument("--slots", type=int, default=4)
     p.add_argument("--concurrency", type=int, default=4)
+    p.add_argument("--against", default="", metavar="STORE",
+                   help="also compare with a rollout store an earlier run wrote (another stack, other processes), "
+                        "e.g. the pass0 folder of an earlier invocation")
     a = p.parse_args(argv)
     keys = [EpisodeKey(a.suite, str(t), s, "", "replay") for t in _ints(a.tasks) for s in _ints(a.seeds)]
     work = Path(tempfile.mkdtemp(prefix="zetta-replays-"))
@@ -69,6 +73,15 @@ def main(argv: list[str] | None = None) -> int:
             rows = asyncio.run(Runner(store, run, env_config(a.suite, run)).run(keys))
             passes.append({(r.task, r.seed): (r.steps, r.success, store.trace(r)) for r in rows})
             print(f"pass {i}: {sum(v[1] for v in passes[-1].values())}/{len(keys)} succeeded", flush=True)
+    if a.against:
+        earlier = RolloutStore(a.against)
+        rows = {(k.task, k.seed): earlier.get(k) for k in keys}
+        missing = sorted(key for key, r in rows.items() if r is None)
+        if missing:
+            p.error(f"{a.against} holds no rollout of {len(missing)} of these keys, e.g. task/seed {missing[0]}")
+        passes.insert(0, {key: (r.steps, r.success, earlier.trace(r)) for key, r in rows.items() if r is not None})
+        print(f"earlier run {a.against}: {sum(v[1] for v in passes[0].values())}/{len(keys)} succeeded "
+              "(compared as pass 0; the passes of this run follow it)", flush=True)
     diverged = 0
     for key in sorted(passes[0]):
         for i, other in enumerate(passes[1:], start=1):
@@ -77,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                 diverged += 1
                 print(f"{a.suite}/{key[0]}/{key[1]}: pass 0 {passes[0][key][0]} steps, pass {i} {other[key][0]}; "
                       f"first differing env step {step}")
-    print(f"{diverged} divergent replays of {len(keys) * (a.passes - 1)} (stores under {work})")
+    print(f"{diverged} divergent replays of {len(keys) * (len(passes) - 1)} (stores under {work})")
     return 1 if diverged else 0
 
 

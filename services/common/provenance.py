@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import platform
 import subprocess
 import time
 from collections.abc import Callable, Mapping
@@ -41,9 +43,30 @@ def weights_sha256(checkpoint: str | Path | None) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None and path.is_file() else ""
 
 
+def machine() -> str:
+    """The machine a figure was measured on, down to what changes its floats: torch's CPU kernels
+    (MKL and oneDNN on AVX2 or AVX-512) round differently in the last bits, and closed-loop episodes
+    amplify that, so a seed's episode replays bit for bit on the same kind of CPU only."""
+    import torch
+
+    model, family = "", ""
+    try:
+        info = dict(line.split(":", 1) for line in Path("/proc/cpuinfo").read_text().splitlines()[:30] if ":" in line)
+        info = {k.strip(): v.strip() for k, v in info.items()}
+        model = info.get("model name", "")
+        if "cpu family" in info:
+            family = f" (family {info['cpu family']} model {info.get('model', '?')})"
+    except OSError:
+        pass
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (f"{platform.machine()}, {cpus} CPUs" + (f", {model}{family}" if model else "")
+            + f", torch CPU kernels {torch.backends.cpu.get_cpu_capability()}")
+
+
 def provenance(command: str, root: Path) -> dict[str, Any]:
-    """What every results file records about its run: the command, the commit, the date."""
-    return {"command": command, "source": git_source(root), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    """What every results file records about its run: the command, the commit, the date, the machine."""
+    return {"command": command, "source": git_source(root), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "machine": machine()}
 
 
 def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
@@ -55,7 +78,8 @@ def page_header(topic: str, title: str, doc: Mapping[str, Any]) -> str:
     lines = [f"# {title} (generated)", "",
              f"Generated from [`{topic}.json`]({topic}.json) by `{RENDER_COMMAND} {topic}`; do not edit by hand.", "",
              f"- measured by: `{doc.get('command', 'unknown')}`",
-             f"- commit: `{commit[:12]}`{dirty}" + (f", {doc['date']}" if doc.get("date") else "")]
+             f"- commit: `{commit[:12]}`{dirty}" + (f", {doc['date']}" if doc.get("date") else "")
+             + (f", on {doc['machine']}" if isinstance(doc.get("machine"), str) else "")]
     if src.get("note"):
         lines.append(f"- {src['note']}")
     if doc.get("superseded"):

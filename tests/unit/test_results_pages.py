@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import platform
 import shutil
 from pathlib import Path
 from types import ModuleType
@@ -150,6 +151,22 @@ def test_a_result_whose_code_changed_says_so_at_the_top_of_its_page() -> None:
             f"were measured at commit `{measured[:12]}`") in page and "rerun: zetta y" in page
     with pytest.raises(ValueError):
         code_changed(doc, measured)
+
+
+def test_a_results_file_names_the_cpu_whose_kernels_made_its_floats(tmp_path: Path) -> None:
+    """Episodes replay on the same kind of CPU only, so every run records which one and its page says it."""
+    import os
+
+    import torch
+
+    from services.common.provenance import provenance
+
+    doc = provenance("zetta x", tmp_path)
+    cpus = len(os.sched_getaffinity(0))
+    assert doc["machine"].startswith(f"{platform.machine()}, {cpus} CPUs")
+    assert doc["machine"].endswith(f"torch CPU kernels {torch.backends.cpu.get_cpu_capability()}")
+    page = gen.render("harness-cost", {**_SOURCE, "rendered": "table", "machine": doc["machine"]})
+    assert f", on {doc['machine']}" in page.splitlines()[5]
 
 
 def test_a_published_bench_names_the_command_that_reruns_it(tmp_path: Path) -> None:

@@ -10,7 +10,6 @@ The page is never edited by hand.
 from __future__ import annotations
 
 import json
-import platform
 import subprocess
 import sys
 import time
@@ -18,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from services.common.policies import training_init_states
-from services.common.provenance import weights_sha256
+from services.common.provenance import machine, weights_sha256
 from zetta_wire.stats import wilson
 
 
@@ -75,7 +74,7 @@ def write_results(path: str | Path, rows: list[dict], *, model: str, checkpoint:
     sha = weights_sha256(checkpoint)
     run = {"command": " ".join(command), "commit": git_commit(),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "machine": f"{platform.machine()}, {_cpus()} CPUs", "wall_s": round(wall_s, 1),
+           "machine": machine(), "wall_s": round(wall_s, 1),
            "episode_s": round(sum(float(r.get("seconds", 0.0)) for r in rows), 1), "suites": sorted(suites)}
     runs = [run]
     merged = dict(suites)
@@ -109,12 +108,6 @@ def _runs(doc: dict[str, Any]) -> list[dict[str, Any]]:
         return list(doc["runs"])
     keys = ("command", "commit", "date", "machine", "wall_s", "episode_s")
     return [{**{k: doc[k] for k in keys if k in doc}, "suites": sorted(doc.get("suites", {}))}]
-
-
-def _cpus() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0))
 
 
 def _pct(lo_hi: list[float]) -> str:
