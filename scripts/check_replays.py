@@ -62,6 +62,16 @@ def main(argv: list[str] | None = None) -> int:
                         "e.g. the pass0 folder of an earlier invocation")
     a = p.parse_args(argv)
     keys = [EpisodeKey(a.suite, str(t), s, "", "replay") for t in _ints(a.tasks) for s in _ints(a.seeds)]
+    earlier: dict[tuple[str, int], tuple[int, bool, Trace]] = {}
+    if a.against:  # read before the stack starts: a wrong folder fails at once
+        if not (Path(a.against) / "index.sqlite").is_file():
+            p.error(f"{a.against} is not a rollout store (no index.sqlite in it)")
+        store = RolloutStore(a.against)
+        found = {(k.task, k.seed): store.get(k) for k in keys}
+        missing = sorted(key for key, r in found.items() if r is None)
+        if missing:
+            p.error(f"{a.against} holds no rollout of {len(missing)} of these keys, e.g. task/seed {missing[0]}")
+        earlier = {key: (r.steps, r.success, store.trace(r)) for key, r in found.items() if r is not None}
     work = Path(tempfile.mkdtemp(prefix="zetta-replays-"))
     passes: list[dict[tuple[str, int], tuple[int, bool, Trace]]] = []
     with endpoints(None, None, a.model, a.env_workers, a.slots, work / "stack", False) as ep:
@@ -73,14 +83,9 @@ def main(argv: list[str] | None = None) -> int:
             rows = asyncio.run(Runner(store, run, env_config(a.suite, run)).run(keys))
             passes.append({(r.task, r.seed): (r.steps, r.success, store.trace(r)) for r in rows})
             print(f"pass {i}: {sum(v[1] for v in passes[-1].values())}/{len(keys)} succeeded", flush=True)
-    if a.against:
-        earlier = RolloutStore(a.against)
-        rows = {(k.task, k.seed): earlier.get(k) for k in keys}
-        missing = sorted(key for key, r in rows.items() if r is None)
-        if missing:
-            p.error(f"{a.against} holds no rollout of {len(missing)} of these keys, e.g. task/seed {missing[0]}")
-        passes.insert(0, {key: (r.steps, r.success, earlier.trace(r)) for key, r in rows.items() if r is not None})
-        print(f"earlier run {a.against}: {sum(v[1] for v in passes[0].values())}/{len(keys)} succeeded "
+    if earlier:
+        passes.insert(0, earlier)
+        print(f"earlier run {a.against}: {sum(v[1] for v in earlier.values())}/{len(keys)} succeeded "
               "(compared as pass 0; the passes of this run follow it)", flush=True)
     diverged = 0
     for key in sorted(passes[0]):

@@ -47,8 +47,6 @@ def machine() -> str:
     """The machine a figure was measured on, down to what changes its floats: torch's CPU kernels
     (MKL and oneDNN on AVX2 or AVX-512) round differently in the last bits, and closed-loop episodes
     amplify that, so a seed's episode replays bit for bit on the same kind of CPU only."""
-    import torch
-
     model, family = "", ""
     try:
         info = dict(line.split(":", 1) for line in Path("/proc/cpuinfo").read_text().splitlines()[:30] if ":" in line)
@@ -59,8 +57,13 @@ def machine() -> str:
     except OSError:
         pass
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return (f"{platform.machine()}, {cpus} CPUs" + (f", {model}{family}" if model else "")
-            + f", torch CPU kernels {torch.backends.cpu.get_cpu_capability()}")
+    try:  # an image without torch (gateway, critic) has no kernels to name
+        import torch
+
+        kernels = f", torch CPU kernels {torch.backends.cpu.get_cpu_capability()}"
+    except ImportError:
+        kernels = ""
+    return f"{platform.machine()}, {cpus} CPUs" + (f", {model}{family}" if model else "") + kernels
 
 
 def provenance(command: str, root: Path) -> dict[str, Any]:
