@@ -36,7 +36,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -57,7 +56,7 @@ from bench import bench_sweep  # noqa: E402
 from bench.bench_report import aligned  # noqa: E402
 from bench.bench_sweep import Episode, balanced, quiet_fds  # noqa: E402
 from services.common.progress import add_progress_option, progress  # noqa: E402
-from services.common.provenance import machine as cpu_machine, page_header, provenance, write_results  # noqa: E402
+from services.common.provenance import page_header, provenance, write_results  # noqa: E402
 
 SUITE = "libero_goal"
 TASK = "put_the_cream_cheese_in_the_bowl"
@@ -307,14 +306,10 @@ def markdown_table(points: Sequence[Point]) -> str:
     return "\n".join(lines)
 
 
-def machine() -> str:
-    return f"{cpu_machine()}, Python {platform.python_version()}, {platform.system()}"
-
-
 def results_doc(points: Sequence[Point], setup: dict[str, float], args: argparse.Namespace, command: str,
                 load: tuple[float, float]) -> dict[str, Any]:
     """The results file: every episode of every point, what ran, the command and the commit."""
-    return {**provenance(command, ROOT), "machine": machine(), "load": list(load), "setup": setup,
+    return {**provenance(command, ROOT), "machine": bench_sweep.machine(), "load": list(load), "setup": setup,
             "max_steps": args.max_steps, "episodes_per_point": args.episodes_per_point,
             "naive_episodes": args.naive_episodes, "repeats": args.repeats,
             "points": [{"mode": p.mode, "concurrency": p.concurrency,
@@ -391,7 +386,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_all:6.1f} s] {msg}", flush=True)
 
-    log(f"{machine()}; load average {load0:.2f}")
+    log(f"{bench_sweep.machine()}; load average {load0:.2f}")
     log(f"task {SUITE}/{TASK}, budget {args.max_steps} steps, {args.episodes_per_point} episodes per stack point, "
         f"{args.naive_episodes} naive episodes, concurrency {args.concurrency}, modes {args.modes}, "
         f"repeats {args.repeats}")

@@ -49,8 +49,8 @@ def machine() -> str:
     amplify that, so a seed's episode replays bit for bit on the same kind of CPU only."""
     model, family = "", ""
     try:
-        info = dict(line.split(":", 1) for line in Path("/proc/cpuinfo").read_text().splitlines()[:30] if ":" in line)
-        info = {k.strip(): v.strip() for k, v in info.items()}
+        lines = Path("/proc/cpuinfo").read_text().splitlines()[:30]  # the first CPU's block
+        info = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in lines if ":" in line)}
         model = info.get("model name", "")
         if "cpu family" in info:
             family = f" (family {info['cpu family']} model {info.get('model', '?')})"
