@@ -15,6 +15,10 @@ steps      ms per executed action on LIBERO-Goal with two 128x128 cameras, for t
            did); only after the last action of an 8-action chunk (what the worker does now) --
            each with reflections on and off. Same episode key and actions for all; at most 3
            rounds (the every-step rows are slow).
+antialias  LIBERO-Goal's agentview, reflections off (as the shipped image VLA reads it), at 64 and
+           128 px, rendered with MuJoCo's 4x multisampled offscreen buffer and single-sampled
+           (``antialias: false``): ms per frame, and how far the two frames of one state differ
+           (mean and largest absolute difference per channel, 0-255).
 backends   The 2-camera 128x128 observation in a fresh process per installed backend (MUJOCO_GL
            egl and osmesa; they cannot share a process), reflections on and off.
 
@@ -103,6 +107,28 @@ def bench_frames(sizes: Sequence[int], repeats: int, n: int) -> dict[tuple, list
                 for cams in (TWO[:1], TWO):
                     results[(scene, size, len(cams), on)].append(time_ms(lambda c=cams: renderer.render(c), n))
             refl.set(True)
+    for family, slot in slots.values():
+        slot.close()
+        family.close()
+    return results
+
+
+# ---------------------------------------------------------------------------------------------
+# Antialiasing
+
+
+def bench_antialias(sizes: Sequence[int], repeats: int, n: int) -> dict[tuple, Any]:
+    """ms per frame by (size, antialias), and (size, "diff") -> (mean, max) pixel difference."""
+    slots = {(size, on): open_slot("libero", {**libero_config(size, TWO[:1]), "reflections": False, "antialias": on})
+             for size in sizes for on in (True, False)}
+    results: dict[tuple, Any] = defaultdict(list)
+    for size in sizes:
+        with_aa, without = (slots[(size, on)][1].renderer.render(TWO[:1])[0].astype(int) for on in (True, False))
+        gap = np.abs(with_aa - without)
+        results[(size, "diff")] = (float(gap.mean()), int(gap.max()))
+    for _ in range(repeats):
+        for (size, on), (_, slot) in slots.items():
+            results[(size, on)].append(time_ms(lambda r=slot.renderer: r.render(TWO[:1]), n))
     for family, slot in slots.values():
         slot.close()
         family.close()
@@ -245,6 +271,14 @@ def main() -> None:
             per_frame = med(frames[("libero-goal", size, 2, on)]) / 2
             row.append(f"{size}px 2 cams refl {'on ' if on else 'off'} {per_frame / base:5.2f}x")
         print("  " + "   ".join(row))
+
+    aa = bench_antialias((64, 128), repeats, n)
+    print("\n## Antialiasing, LIBERO-Goal agentview, reflections off (ms per frame)")
+    print(f"{'size':>5} | {'4x MSAA':>8}{'single':>8} | {'MSAA/single':>11} | pixel difference mean, max (0-255)")
+    for size in (64, 128):
+        on, off = med(aa[(size, True)]), med(aa[(size, False)])
+        mean, peak = aa[(size, "diff")]
+        print(f"{size:>5} | {on:>8.1f}{off:>8.1f} | {on / off:>10.2f}x | {mean:.1f}, {peak}")
 
     steps = bench_steps(min(repeats, 3), 16 if args.quick else 32)
     print("\n## Step cost, LIBERO-Goal, 2 cameras 128x128 (ms per executed action)")

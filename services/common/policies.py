@@ -111,7 +111,16 @@ def policy_env_config(model: str) -> dict[str, Any]:
     if model != DEFAULT_POLICY:
         return {}
     doc = json.loads((default_checkpoint() / "config.json").read_text())
-    return render_config([TensorSpec(i["name"], i["dtype"], tuple(i["shape"])) for i in doc["inputs"]])
+    return render_config([TensorSpec(i["name"], i["dtype"], tuple(i["shape"])) for i in doc["inputs"]],
+                         antialias=trained_antialiased(doc))
+
+
+def trained_antialiased(config: dict[str, Any]) -> bool:
+    """Whether a checkpoint's training frames were multisampled (a checkpoint config.json): its
+    sessions render the same way. Recipes that do not say were rendered before the choice
+    existed, multisampled."""
+    recipes = [r.get("recipe", r) for r in config.get("data", {}).get("recipes", [])]
+    return any(r.get("antialias", True) for r in recipes if r.get("image_size")) or not recipes
 
 
 #: A data recipe's ``init_states``: the benchmark's fixed initial states (seed % 50), or layouts

@@ -75,12 +75,14 @@ def camera_of_image(name: str) -> str:
     return f"robot0_{camera}" if camera in ROBOT_CAMERAS else camera
 
 
-def render_config(specs: list[TensorSpec]) -> dict[str, Any]:
+def render_config(specs: list[TensorSpec], antialias: bool = True) -> dict[str, Any]:
     """The env-config keys that make a slot render exactly the camera images these input specs
     declare (``<camera>_image``, uint8 [S, S, 3]) with reflections off, or {} for a policy that
-    reads no image: clients create sessions with it so a policy is shown what it was trained on."""
+    reads no image: clients create sessions with it so a policy is shown what it was trained on.
+    ``antialias`` is how its training frames were rendered (robosuite's default, and so LIBERO's
+    datasets, is multisampled)."""
     cameras = [s for s in specs if s.name.endswith("_image")]
     if not cameras:
         return {}
     return {"cameras": [camera_of_image(s.name) for s in cameras], "camera_size": int(cameras[0].shape[0]),
-            "reflections": False}
+            "reflections": False, "antialias": antialias}

@@ -42,6 +42,13 @@ Reflections
     scene a second time, mirrored; without it a frame costs about a third (bench/bench_render.py).
     Off changes what the policy sees, so the default stays on.
 
+Antialiasing
+    ``env_config`` ``antialias: false`` renders into a single-sampled offscreen buffer instead of
+    MuJoCo's 4x multisampled one. On Mesa's software rasterizer multisampling dominates a small
+    frame's cost (a 64 px LIBERO frame: about 3x, bench/bench_render.py); it only softens edges.
+    Off changes what the policy sees, so the default stays on; an image policy's
+    render config (services/common/specs.py) says which way it was judged.
+
 This module imports MuJoCo only inside the renderer classes: importing it (as
 the families' API does) loads no simulator.
 """
@@ -337,7 +344,7 @@ class SceneRenderer:
     makes an overlap wait instead of corrupting the frame.
     """
 
-    def __init__(self, model: Any, data: Any, width: int, height: int) -> None:
+    def __init__(self, model: Any, data: Any, width: int, height: int, samples: int | None = None) -> None:
         import mujoco
 
         GLContext = _gl_context_class()
@@ -345,6 +352,8 @@ class SceneRenderer:
         vis = model.vis.global_
         # The offscreen buffer bounds every frame; grow it before the context is made.
         vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
+        if samples is not None:  # multisampling of the offscreen buffer, fixed when the context is made
+            model.vis.quality.offsamples = samples
         self._lock = threading.Lock()
         self._con: Any = None
         # MjrContext uploads the model's textures (2.6-3.8 s for a LIBERO scene on two loaded cores).
@@ -503,11 +512,13 @@ class SlotRenderer:
         size: int,
         reflections: bool = True,
         video_camera: str = DEFAULT_VIDEO_CAMERA,
+        antialias: bool = True,
     ) -> None:
         self._env = env
         self.cameras = tuple(cameras)
         self.size = size
         self.reflections = reflections
+        self.antialias = antialias
         self.video_camera = video_camera
         self.image_names = tuple(camera_image_name(c) for c in self.cameras)
         #: Camera renders done by this slot (one per camera per frame).
@@ -515,8 +526,10 @@ class SlotRenderer:
 
     @classmethod
     def for_config(cls, env: Callable[[], Any], config: Mapping[str, Any]) -> SlotRenderer:
-        """The renderer a family config asks for (``cameras``, ``camera_size``, ``reflections``)."""
-        return cls(env, config.get("cameras", ()), config.get("camera_size", 128), config.get("reflections", True))
+        """The renderer a family config asks for (``cameras``, ``camera_size``, ``reflections``,
+        ``antialias``)."""
+        return cls(env, config.get("cameras", ()), config.get("camera_size", 128), config.get("reflections", True),
+                   antialias=config.get("antialias", True))
 
     def scene(self) -> SceneRenderer:
         """The scene renderer of the slot's current environment, made on first use.
@@ -540,7 +553,7 @@ class SlotRenderer:
             # same config, so zeroing a model other slots render is what they ask for too.
             disable_reflections(model)
         if scene is None:
-            scene = SceneRenderer(model, data, self.size, self.size)
+            scene = SceneRenderer(model, data, self.size, self.size, None if self.antialias else 0)
             setattr(env, self._ATTR, scene)
         return scene
 

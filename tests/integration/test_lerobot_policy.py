@@ -129,7 +129,7 @@ async def test_lerobot_policy_served_end_to_end(stack_factory, checkpoint, monke
 
     # Through the gateway: sessions render the camera the policy declares and step on its chunks.
     cameras = render_config([TensorSpec(n, "uint8", shape) for n, shape in inputs.items() if n.endswith("_image")])
-    assert cameras == {"cameras": ["robot0_eye_in_hand"], "camera_size": 64, "reflections": False}
+    assert cameras == {"cameras": ["robot0_eye_in_hand"], "camera_size": 64, "reflections": False, "antialias": True}
     monkeypatch.setenv("ZETTA_LEROBOT_CHECKPOINT", str(ck))
     monkeypatch.setenv("ZETTA_LEROBOT_CAMERAS", WRIST)
     assert policy_env_config("lerobot") == cameras  # what the CLI commands create sessions with

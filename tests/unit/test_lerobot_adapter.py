@@ -61,7 +61,7 @@ def test_lerobot_image_inputs_map_to_env_cameras(tmp_path, monkeypatch) -> None:
         "observation.state": {"type": "STATE", "shape": [8]}}}))
     monkeypatch.setenv("ZETTA_LEROBOT_CHECKPOINT", str(tmp_path))
     assert policy_env_config("lerobot") == {"cameras": ["agentview", "robot0_eye_in_hand"], "camera_size": 224,
-                                            "reflections": False}
+                                            "reflections": False, "antialias": True}
 
 
 def test_render_config_names_robot_cameras_as_the_env_does() -> None:

@@ -255,6 +255,26 @@ def test_reflections_switch() -> None:
     assert not np.array_equal(frames[True], frames[False])
 
 
+@NO_GL
+def test_antialias_switch() -> None:
+    """Off renders single-sampled frames of the same scene: edges differ, the picture does not."""
+    with pytest.raises(FamilyConfigError, match="true or false"):
+        get_family("robosuite")({"env_name": "Lift", "antialias": "maybe"})
+    frames = {}
+    for on in (True, False):
+        family = get_family("robosuite")({"env_name": "Lift", "cameras": ["agentview"], "camera_size": 64,
+                                          "antialias": on})
+        slot = family.init()
+        try:
+            frames[on] = slot.reset(ResetSpec(""))[0]["agentview_image"].astype(int)
+            assert slot._env.sim.model._model.vis.quality.offsamples == (4 if on else 0)
+        finally:
+            slot.close()
+            family.close()
+    gap = np.abs(frames[True] - frames[False])
+    assert gap.any() and gap.mean() < 8
+
+
 # ---- videos -------------------------------------------------------------------------------------
 
 

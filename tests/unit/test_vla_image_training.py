@@ -19,8 +19,23 @@ TEXT = {"put the bowl on the plate": np.linspace(-1, 1, 384).astype(np.float32),
 
 def test_render_config_follows_the_declared_cameras() -> None:
     specs = [TensorSpec("robot0_eef_pos", "float32", (3,)), TensorSpec("agentview_image", "uint8", (64, 64, 3))]
-    assert render_config(specs) == {"cameras": ["agentview"], "camera_size": 64, "reflections": False}
+    assert render_config(specs) == {"cameras": ["agentview"], "camera_size": 64, "reflections": False, "antialias": True}
     assert render_config(specs[:1]) == {}
+
+
+def test_sessions_render_as_the_checkpoint_was_trained() -> None:
+    """Frames of a new recipe are single-sampled (cheaper); a checkpoint whose recipes predate the
+    choice was trained on multisampled frames, and its sessions keep rendering that way."""
+    from services.common.policies import trained_antialiased
+    from services.policy_worker.vla.features import image_env_config
+
+    assert image_env_config(64)["antialias"] is False
+    assert DataRecipe(image_size=64).antialias is False
+    assert episode_key(DataRecipe(image_size=64)) != episode_key(DataRecipe(image_size=64, antialias=True))
+    old, new = {"recipe": {"image_size": 64}}, {"recipe": {"image_size": 64, "antialias": False}}
+    assert trained_antialiased({"data": {"recipes": [old]}}) is True
+    assert trained_antialiased({"data": {"recipes": [new, {"recipe": {"image_size": 0}}]}}) is False
+    assert trained_antialiased({"data": {"recipes": [new, old]}}) is True
 
 
 def test_episode_parts_round_trip_and_key_ignores_counts(tmp_path) -> None:

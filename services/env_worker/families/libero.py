@@ -145,7 +145,7 @@ class LiberoFamily(PooledGroup, EnvFamily):
 
     name = "libero"
     _KEYS = (
-        "suite", "variant", "task", "cameras", "camera_size", "reflections", "max_steps", "settle_steps",
+        "suite", "variant", "task", "cameras", "camera_size", "reflections", "antialias", "max_steps", "settle_steps",
         "object_state_dim", "fast_step",
     )
 
@@ -194,6 +194,7 @@ class LiberoFamily(PooledGroup, EnvFamily):
             "cameras": camera_option(cls.name, config, LIBERO_CAMERAS),
             "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8, maximum=MAX_CAMERA_SIZE),
             "reflections": bool_option(cls.name, config, "reflections", True),
+            "antialias": bool_option(cls.name, config, "antialias", True),
             "max_steps": int_option(cls.name, config, "max_steps", default_steps or 0, minimum=1,
                                      maximum=MAX_EPISODE_STEPS),
             "settle_steps": int_option(cls.name, config, "settle_steps", 10, maximum=MAX_SETTLE_STEPS),

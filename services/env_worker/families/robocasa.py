@@ -307,7 +307,7 @@ class RobocasaFamily(EnvFamily):
     name = "robocasa"
     _KEYS = (
         "env_name", "task", "robots", "layout_ids", "style_ids", "obj_registries", "cameras", "camera_size",
-        "reflections", "max_steps", "object_state_dim", "control_freq",
+        "reflections", "antialias", "max_steps", "object_state_dim", "control_freq",
     )
 
     @classmethod
@@ -351,6 +351,7 @@ class RobocasaFamily(EnvFamily):
             "cameras": camera_option(cls.name, config, ROBOCASA_CAMERAS),
             "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8, maximum=MAX_CAMERA_SIZE),
             "reflections": bool_option(cls.name, config, "reflections", True),
+            "antialias": bool_option(cls.name, config, "antialias", True),
             "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1, maximum=MAX_EPISODE_STEPS),
             "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM,
                                              maximum=MAX_OBJECT_STATE_DIM),
@@ -485,7 +486,8 @@ class _RobocasaSlot(EpisodeSlot):
         self._env = env
         family._ensure_specs(env)
         cfg = family.config
-        renderer = SlotRenderer(lambda: self._env, cfg["cameras"], cfg["camera_size"], cfg["reflections"], VIDEO_CAMERA)
+        renderer = SlotRenderer(lambda: self._env, cfg["cameras"], cfg["camera_size"], cfg["reflections"], VIDEO_CAMERA,
+                                 antialias=cfg["antialias"])
         super().__init__(family.obs_schema(), renderer)
         self._zeros = {name: spec.zeros() for name, spec in family.obs_schema().items()}
         self._object: Any = None

@@ -315,7 +315,7 @@ class RobosuiteFamily(PooledGroup, EnvFamily):
 
     name = "robosuite"
     _KEYS = (
-        "env_name", "robots", "cameras", "camera_size", "reflections", "max_steps", "object_state_dim", "fast_step",
+        "env_name", "robots", "cameras", "camera_size", "reflections", "antialias", "max_steps", "object_state_dim", "fast_step",
     )
 
     def __init__(self, config: Mapping[str, Any]) -> None:
@@ -345,6 +345,7 @@ class RobosuiteFamily(PooledGroup, EnvFamily):
             "cameras": camera_option(cls.name, config, ROBOSUITE_CAMERAS),
             "camera_size": int_option(cls.name, config, "camera_size", 128, minimum=8, maximum=MAX_CAMERA_SIZE),
             "reflections": bool_option(cls.name, config, "reflections", True),
+            "antialias": bool_option(cls.name, config, "antialias", True),
             "max_steps": int_option(cls.name, config, "max_steps", 500, minimum=1, maximum=MAX_EPISODE_STEPS),
             "object_state_dim": int_option(cls.name, config, "object_state_dim", DEFAULT_OBJECT_STATE_DIM,
                                              maximum=MAX_OBJECT_STATE_DIM),

@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY, checkpoint_dir
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir
 from services.common.progress import add_progress_option, progress
 from zetta_wire.stats import wilson
 
@@ -27,6 +27,7 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     import torch
 
     torch.set_num_threads(1)
+    from services.common.policies import policy_env_config
     from services.common.specs import render_config
     from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
@@ -34,7 +35,8 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     policy = load_model(model)
     specs = policy.input_specs()
     names = [s.name for s in specs]
-    config = {"suite": suite, **render_config(specs)}  # an image policy: the cameras it reads
+    # An image policy: the cameras it reads, rendered as its training frames were.
+    config = {"suite": suite, **(policy_env_config(model) or render_config(specs))}
     fam_cls = get_family("libero")
     family = fam_cls(fam_cls.canonical_config(config))
     slot = family.init()
@@ -170,7 +172,8 @@ def main(argv=None) -> int:
     p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
     p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed %% 50")
     p.add_argument("--seed-offset", type=int, default=0)
-    p.add_argument("--execute-steps", type=int, default=4)
+    p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
+                   help=f"actions of each chunk run per policy call (default {EXECUTE_STEPS})")
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--quantize", default="", help="ZETTA_VLA_QUANTIZE for the policy (e.g. w8a8)")
     p.add_argument("--checkpoint", default="")
