@@ -237,40 +237,40 @@ def test_frames_follow_the_env_across_threads(slot) -> None:
 # ---- reflections --------------------------------------------------------------------------------
 
 
-@NO_GL
-def test_reflections_switch() -> None:
+def _lift_frames(option: str, probe) -> dict[bool, np.ndarray]:
+    """Lift's agentview frame after reset with ``option`` on and off; ``probe(model, on)`` checks
+    the slot's model while it is open."""
     with pytest.raises(FamilyConfigError, match="true or false"):
-        get_family("robosuite")({"env_name": "Lift", "reflections": "no"})
+        get_family("robosuite")({"env_name": "Lift", option: "maybe"})
     frames = {}
     for on in (True, False):
-        family = get_family("robosuite")({"env_name": "Lift", "cameras": ["agentview"], "camera_size": 64,
-                                          "reflections": on})
+        family = get_family("robosuite")({"env_name": "Lift", "cameras": ["agentview"], "camera_size": 64, option: on})
         slot = family.init()
         try:
-            frames[on] = slot.reset(ResetSpec(""))[0]["agentview_image"]
-            assert bool(slot._env.sim.model._model.mat_reflectance.any()) is on
+            frames[on] = slot.reset(ResetSpec(""))[0]["agentview_image"].astype(int)
+            probe(slot._env.sim.model._model, on)
         finally:
             slot.close()
             family.close()
+    return frames
+
+
+@NO_GL
+def test_reflections_switch() -> None:
+    def probe(model, on: bool) -> None:
+        assert bool(model.mat_reflectance.any()) is on
+
+    frames = _lift_frames("reflections", probe)
     assert not np.array_equal(frames[True], frames[False])
 
 
 @NO_GL
 def test_antialias_switch() -> None:
     """Off renders single-sampled frames of the same scene: edges differ, the picture does not."""
-    with pytest.raises(FamilyConfigError, match="true or false"):
-        get_family("robosuite")({"env_name": "Lift", "antialias": "maybe"})
-    frames = {}
-    for on in (True, False):
-        family = get_family("robosuite")({"env_name": "Lift", "cameras": ["agentview"], "camera_size": 64,
-                                          "antialias": on})
-        slot = family.init()
-        try:
-            frames[on] = slot.reset(ResetSpec(""))[0]["agentview_image"].astype(int)
-            assert slot._env.sim.model._model.vis.quality.offsamples == (4 if on else 0)
-        finally:
-            slot.close()
-            family.close()
+    def probe(model, on: bool) -> None:
+        assert model.vis.quality.offsamples == (4 if on else 0)
+
+    frames = _lift_frames("antialias", probe)
     gap = np.abs(frames[True] - frames[False])
     assert gap.any() and gap.mean() < 8
 
