@@ -44,10 +44,11 @@ Reflections
 
 Antialiasing
     ``env_config`` ``antialias: false`` renders into a single-sampled offscreen buffer instead of
-    MuJoCo's 4x multisampled one. On Mesa's software rasterizer multisampling dominates a small
-    frame's cost (a 64 px LIBERO frame: about 3x, bench/bench_render.py); it only softens edges.
-    Off changes what the policy sees, so the default stays on; an image policy's
-    render config (services/common/specs.py) says which way it was judged.
+    MuJoCo's 4x multisampled one. On Mesa's software rasterizer multisampling is most of a small
+    frame's cost (a 64 px LIBERO frame: about 3x, bench/bench_render.py). The frames differ at
+    edges (mean 3.8 of 255 at 64 px), enough to move a policy trained on the other kind, so the
+    default stays on and a checkpoint's sessions render as its training frames were
+    (services/common/policies.py, ``trained_antialiased``).
 
 This module imports MuJoCo only inside the renderer classes: importing it (as
 the families' API does) loads no simulator.
