@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir
+from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir, policy_env_config
 from services.common.progress import add_progress_option, progress
 from zetta_wire.stats import wilson
 
@@ -27,7 +27,6 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
     import torch
 
     torch.set_num_threads(1)
-    from services.common.policies import policy_env_config
     from services.common.specs import render_config
     from services.env_worker.families import ResetSpec, get_family
     from services.policy_worker.models.base import load_model
