@@ -131,6 +131,17 @@ def test_published_policy_figures_are_of_the_shipped_weights() -> None:
     assert {"vla.json", "demo.json"} <= found, "vla.json and demo.json name the weights they measured"
 
 
+def test_the_policy_figures_are_measured_as_the_policy_is_served() -> None:
+    """vla.json and demo.json are what a user gets from the default commands: measured at the
+    actions per call every command defaults to, so changing EXECUTE_STEPS means re-measuring them."""
+    from services.common.policies import EXECUTE_STEPS
+
+    for name in ("vla.json", "demo.json"):
+        doc = json.loads((RESULTS / name).read_text())
+        assert doc["execute_steps"] == EXECUTE_STEPS, (
+            f"{name} was measured at {doc['execute_steps']} actions per call, the default is {EXECUTE_STEPS}: re-measure it")
+
+
 def test_a_superseded_results_file_says_so_at_the_top_of_its_page() -> None:
     from services.common.provenance import superseded
 
