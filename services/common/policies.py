@@ -29,7 +29,8 @@ ACTION_DIM = 7
 #: The frozen policy every command uses unless told otherwise.
 DEFAULT_POLICY = "zetta-vla-image"
 #: Actions of each 8-action chunk executed per policy call: the shipped VLA's DAgger rounds and
-#: every published figure of it (docs/results/vla.md) use 4; 2 scored no better on test.
+#: every published figure of it (docs/results/vla.md) use 4; 2 gained nothing on test (earlier
+#: weights) nor on dev (single-sampled weights).
 EXECUTE_STEPS = 4
 #: The state-based VLA that reads object poses; loadable for comparison, never a default.
 PRIVILEGED_BASELINE = "privileged-state-baseline"
