@@ -5,10 +5,10 @@ Slow: ``make test-slow``. On a 2-core machine, oracle demos with frames, then tr
 closed-loop episodes take about one hour to well over two (the machine that made the shipped
 checkpoint, 2026-12-07: 54 min of pipeline; the one-round recipe before it took 80 min to 2 h on
 other CPUs, and a run of this test on it, 2026-12-06, gave shipped 34/50 and reproduced 37/50);
-start it on a quiet machine with time for it. Both checkpoints are evaluated on the same held-out seeds (init states the demonstrations
-never used) and their Wilson intervals must overlap. ``ZETTA_REPRODUCE_DIR`` keeps the
-demonstrations and checkpoints there instead of in a temporary directory, so a run that is cut off
-resumes where it stopped (the pipeline's own resume).
+start it on a quiet machine with time for it. Both checkpoints are evaluated on the same held-out
+seeds (init states the demonstrations never used) and their Wilson intervals must overlap.
+``ZETTA_REPRODUCE_DIR`` keeps the demonstrations and checkpoints there instead of in a temporary
+directory, so a run that is cut off resumes where it stopped (the pipeline's own resume).
 """
 
 from __future__ import annotations
