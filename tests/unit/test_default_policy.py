@@ -40,11 +40,15 @@ def test_every_default_names_the_image_vla() -> None:
     assert DEFAULT_MODEL == DEFAULT_POLICY
 
 
-def test_sessions_for_the_default_render_its_camera_only() -> None:
+def test_sessions_for_the_default_render_its_cameras_only() -> None:
+    from services.common.specs import camera_of_image
+
     cfg = policy_env_config(DEFAULT_POLICY)
-    size = next(s.shape[0] for s in load_model(DEFAULT_POLICY).input_specs() if s.name == "agentview_image")
+    images = [s for s in load_model(DEFAULT_POLICY).input_specs() if s.name.endswith("_image")]
     # Its frames were rendered single-sampled, as a recipe run renders them now.
-    assert cfg == {"cameras": ["agentview"], "camera_size": size, "reflections": False, "antialias": False}
+    assert cfg == {"cameras": [camera_of_image(s.name) for s in images], "camera_size": images[0].shape[0],
+                   "reflections": False, "antialias": False}
+    assert cfg["cameras"][0] == "agentview"
     assert policy_env_config("scripted-pick-place") == {}
 
 

@@ -370,3 +370,31 @@ def test_split_over_cuda_ipc_and_image_variant(tmp_path) -> None:
         assert out.shape == (8, 7)
     finally:
         split.close()
+
+
+def test_a_wrist_camera_is_declared_and_read_by_an_encoder_of_its_own(tmp_path, policy) -> None:
+    from services.common.policies import PROPRIO_INPUTS
+    from services.policy_worker.vla.model import VLAConfig
+    from services.policy_worker.vla.train import TrainConfig, train
+
+    rng = np.random.default_rng(2)
+    instr = sorted(policy.text.cache)[:1]
+    path = str(tmp_path / "demos.npz")
+    np.savez(path, states=rng.standard_normal((6, 156)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (6, 7)).astype(np.float32), episode_lengths=np.array([6]),
+             instructions=np.array(instr), images=rng.integers(0, 255, (3, 2, 16, 16, 3), dtype=np.uint8),
+             image_steps=np.array([0, 2, 4]))
+    cams = ("agentview_image", "eye_in_hand_image")
+    train([path], str(tmp_path / "ck"), VLAConfig(image_size=16, cameras=cams, prefix_hidden=16, width=8,
+                                                  expert_hidden=8),
+          TrainConfig(steps=2, batch_size=4, warmup=1), log=lambda *_: None, text_cache=policy.text.cache)
+    p = ZettaVLAPolicy(tmp_path / "ck", name="zetta-vla-image", noise="zero")
+    assert [s.name for s in p.input_specs()][-2:] == list(cams)
+    assert p.model.cfg.cameras == cams and len(p.model.encoder.more_images) == 1
+    batch = {n: (rng.standard_normal((2, w)) * 0.1).astype(np.float32) for n, w in PROPRIO_INPUTS}
+    batch.update({c: rng.integers(0, 255, (2, 16, 16, 3), dtype=np.uint8) for c in cams})
+    base = p.infer(batch, instr * 2)
+    other = dict(batch, eye_in_hand_image=255 - batch["eye_in_hand_image"])
+    assert not np.allclose(base, p.infer(other, instr * 2)), "the wrist frame reaches the actions"
+    swapped = dict(batch, agentview_image=batch["eye_in_hand_image"], eye_in_hand_image=batch["agentview_image"])
+    assert not np.allclose(base, p.infer(swapped, instr * 2)), "each camera has its own encoder"

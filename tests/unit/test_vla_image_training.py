@@ -159,3 +159,41 @@ def test_input_check_names_the_tensor_a_family_cannot_supply() -> None:
         check_models({"typo": Declares(TensorSpec("robot0_eef_pose", "float32", (3,)))}, "libero")
     with pytest.raises(ConfigError, match=r"robot0_joint_pos \(declared float32\[6\], the family supplies float32\[7\]"):
         check_models({"shape": Declares(TensorSpec("robot0_joint_pos", "float32", (6,)))}, "libero")
+
+
+def test_recipes_record_the_cameras_the_model_reads() -> None:
+    from services.policy_worker.vla.features import image_env_config
+
+    both = ["agentview_image", "eye_in_hand_image"]
+    assert DataRecipe(image_size=64).cameras == ["agentview_image"]
+    assert episode_key(DataRecipe(image_size=64)) != episode_key(DataRecipe(image_size=64, cameras=both))
+    assert image_env_config(64, cameras=tuple(both))["cameras"] == ["agentview", "robot0_eye_in_hand"]
+    with pytest.raises(ValueError, match="eye_in_hand_image"):
+        VLAConfig(image_size=64, cameras=("agentview_image", "frontview_image"))
+    with pytest.raises(ValueError, match="each once"):
+        VLAConfig(image_size=64, cameras=("agentview_image", "agentview_image"))
+
+
+def test_random_shift_draws_each_cameras_shift_on_its_own() -> None:
+    torch.manual_seed(0)
+    frames = torch.zeros(64, 2, 12, 12, 3, dtype=torch.uint8)
+    frames[:, :, 6, 6] = 255
+    out = random_shift(frames, 2)
+    assert out.shape == frames.shape
+    spots = [tuple(torch.nonzero(out[b, v, :, :, 0] == 255)[0].tolist()) for b in range(64) for v in range(2)]
+    assert all(4 <= r <= 8 and 4 <= c <= 8 for r, c in spots)
+    assert sum(spots[2 * b] != spots[2 * b + 1] for b in range(64)) > 32
+
+
+def test_training_refuses_frames_of_other_cameras_than_the_model_reads(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    path = str(tmp_path / "d.npz")
+    np.savez(path, states=rng.standard_normal((4, 156)).astype(np.float32),
+             actions=rng.uniform(-1, 1, (4, 7)).astype(np.float32), episode_lengths=np.array([4]),
+             instructions=np.array(["open the top drawer"]),
+             images=rng.integers(0, 255, (2, 1, 16, 16, 3), dtype=np.uint8), image_steps=np.array([0, 2]))
+    cfg = VLAConfig(image_size=16, cameras=("agentview_image", "eye_in_hand_image"), width=8, prefix_hidden=8,
+                    expert_hidden=8)
+    with pytest.raises(ValueError, match="1 camera image"):
+        train([path], str(tmp_path / "ck"), cfg, TrainConfig(steps=1, batch_size=2), log=lambda *_: None,
+              text_cache=TEXT)

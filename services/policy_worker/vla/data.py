@@ -47,6 +47,9 @@ class DataRecipe:
     processes: int = 2
     keep: str = "successful episodes only"
     image_size: int = 0
+    #: Image recipes: the camera tensors recorded at each frame (the VLA's ``cameras``), stored
+    #: as ``images`` uint8 [frames, cameras, H, W, 3].
+    cameras: list[str] = field(default_factory=lambda: list(IMAGE_INPUTS))
     #: Image recipes render one camera frame every this many steps, the policy-call frequency
     #: of the served image VLA (it runs ``execute_steps`` actions of a chunk per call): the
     #: frames a policy is trained on are the ones it will be shown. States and actions are kept
@@ -92,7 +95,8 @@ def _worker(recipe: dict, jobs, results) -> None:
 
     cfg = {"suite": recipe["suite"]}
     if recipe["image_size"]:
-        cfg.update(image_env_config(recipe["image_size"], antialias=recipe.get("antialias", True)))
+        cfg.update(image_env_config(recipe["image_size"], antialias=recipe.get("antialias", True),
+                                    cameras=tuple(recipe.get("cameras", IMAGE_INPUTS))))
     every = max(1, int(recipe.get("image_every", 1))) if recipe["image_size"] else 0
     family = get_family("libero")(get_family("libero").canonical_config(cfg))
     slot = family.init()
@@ -106,6 +110,7 @@ def _worker(recipe: dict, jobs, results) -> None:
         torch.set_num_threads(1)
         student = ZettaVLAPolicy(recipe["dagger_checkpoint"], noise=recipe["student_noise"])
     names = [n for n, _ in STATE_INPUTS]
+    cameras = list(recipe.get("cameras", IMAGE_INPUTS))
     student_names = [sp.name for sp in student.input_specs()] if student is not None else []
     execute = max(1, int(recipe.get("execute_steps", 1)))
     while True:
@@ -137,7 +142,7 @@ def _worker(recipe: dict, jobs, results) -> None:
                     executed[:6] = np.clip(executed[:6] + rng.normal(0.0, recipe["action_noise"], 6), -1.0, 1.0)
                 if every and len(states) % every == 0:
                     frame_steps.append(len(states))
-                    images.append(obs[IMAGE_INPUTS[0]])
+                    images.append(np.stack([obs[c] for c in cameras]))
                 states.append(state_vector({n: obs[n][None] for n in names})[0])
                 actions.append(np.asarray(action, np.float32))
                 out = slot.step(executed, render=bool(every) and len(states) % every == 0)
@@ -307,6 +312,8 @@ def main(argv=None) -> int:
     p.add_argument("--seeds-per-task", type=int, default=30)
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--image-size", type=int, default=0)
+    p.add_argument("--cameras", default=",".join(IMAGE_INPUTS),
+                   help="image recipes: the camera tensors recorded at each frame, comma-separated")
     p.add_argument("--image-every", type=int, default=DataRecipe.image_every,
                    help="render a frame every N steps (the served policy's execute_steps)")
     p.add_argument("--time-budget", type=float, default=0.0)
@@ -326,7 +333,8 @@ def main(argv=None) -> int:
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
         list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS))
     recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
-                        image_size=a.image_size, image_every=a.image_every, time_budget_s=a.time_budget,
+                        image_size=a.image_size, cameras=[c.strip() for c in a.cameras.split(",") if c.strip()],
+                        image_every=a.image_every, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
                         action_noise=a.action_noise, execute_steps=a.execute_steps,
                         max_episodes=a.max_episodes, student_noise=a.student_noise,

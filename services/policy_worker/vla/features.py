@@ -16,25 +16,37 @@ from services.common.specs import TensorSpec, render_config
 #: (name, width) in the order they are concatenated.
 STATE_INPUTS: tuple[tuple[str, int], ...] = (*PROPRIO_INPUTS, ("object_state", 140))
 STATE_DIM = sum(w for _, w in STATE_INPUTS)
-#: Image inputs of the image-based variant (LIBERO camera names as canonical obs names).
+#: Image inputs of the image-based variant (LIBERO camera names as canonical obs names): the
+#: default camera, and the ones a checkpoint may add (``VLAConfig.cameras``).
 IMAGE_INPUTS: tuple[str, ...] = ("agentview_image",)
+CAMERA_INPUTS: tuple[str, ...] = ("agentview_image", "eye_in_hand_image")
 PROPRIO_DIM = sum(w for _, w in PROPRIO_INPUTS)
 
 
-def state_specs(image_size: int = 0) -> list[TensorSpec]:
-    """Input specs of the state variant (``image_size`` 0) or the image variant."""
+def check_cameras(cameras: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The image tensors of an image variant, checked: known names, each once, at least one."""
+    cameras = tuple(cameras)
+    unknown = [c for c in cameras if c not in CAMERA_INPUTS]
+    if not cameras or unknown or len(set(cameras)) != len(cameras):
+        raise ValueError(f"cameras {list(cameras)!r}: give one or more of {list(CAMERA_INPUTS)}, each once")
+    return cameras
+
+
+def state_specs(image_size: int = 0, cameras: tuple[str, ...] = IMAGE_INPUTS) -> list[TensorSpec]:
+    """Input specs of the state variant (``image_size`` 0) or the image variant (proprioception
+    and one square RGB image per camera, in ``cameras`` order)."""
     if image_size:
         specs = [TensorSpec(n, "float32", (w,)) for n, w in PROPRIO_INPUTS]
-        specs += [TensorSpec(n, "uint8", (image_size, image_size, 3)) for n in IMAGE_INPUTS]
+        specs += [TensorSpec(n, "uint8", (image_size, image_size, 3)) for n in check_cameras(cameras)]
         return specs
     return [TensorSpec(n, "float32", (w,), privileged=(n == "object_state")) for n, w in STATE_INPUTS]
 
 
-def image_env_config(image_size: int, antialias: bool = False) -> dict:
+def image_env_config(image_size: int, antialias: bool = False, cameras: tuple[str, ...] = IMAGE_INPUTS) -> dict:
     """The env config that renders exactly what the image variant reads (reflections off, and by
     default multisampling off: each makes a frame several times cheaper on the CPU rasterizer;
     the recipe records the choice and the checkpoint's sessions render the same way)."""
-    return render_config(state_specs(image_size), antialias=antialias)
+    return render_config(state_specs(image_size, cameras), antialias=antialias)
 
 
 def state_vector(batch: dict[str, np.ndarray], inputs=STATE_INPUTS) -> np.ndarray:

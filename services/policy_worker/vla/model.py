@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from services.common.policies import ACTION_DIM
-from services.policy_worker.vla.features import PROPRIO_DIM, STATE_DIM
+from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_DIM, STATE_DIM, check_cameras
 from services.policy_worker.vla.text import TEXT_DIM
 
 #: Gripper outputs below this magnitude mean "hold" (0); the teacher commands -1, -0.5, 0, 0.5, 1.
@@ -39,6 +39,9 @@ class VLAConfig:
     text_dim: int = TEXT_DIM
     #: 0: state-based variant; > 0: image-based variant on a square RGB image of that size.
     image_size: int = 0
+    #: Image variant: the camera tensors it reads, one encoder each (checkpoints that predate the
+    #: field read the agentview camera alone).
+    cameras: tuple[str, ...] = IMAGE_INPUTS
     width: int = 128
     prefix_tokens: int = 4
     prefix_hidden: int = 256
@@ -48,12 +51,17 @@ class VLAConfig:
     flow_steps: int = 10
     action_dim: int = ACTION_DIM
 
+    def __post_init__(self) -> None:
+        self.cameras = check_cameras(self.cameras)
+
     @classmethod
     def from_dict(cls, d: dict) -> "VLAConfig":
         return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["cameras"] = list(self.cameras)
+        return d
 
 
 class ImageEncoder(nn.Module):
@@ -82,15 +90,18 @@ class PrefixEncoder(nn.Module):
         self.cfg = cfg
         w = cfg.width
         if cfg.image_size:
-            self.image = ImageEncoder(w)
+            self.image = ImageEncoder(w)  # the first camera's (the name older checkpoints load into)
+            #: One encoder per further camera: a wrist view and a scene view share no statistics.
+            self.more_images = nn.ModuleList(ImageEncoder(w) for _ in cfg.cameras[1:])
             obs_in = cfg.proprio_dim
         else:
             self.image = None
+            self.more_images = nn.ModuleList()
             obs_in = cfg.state_dim
         self.obs = nn.Sequential(nn.Linear(obs_in, w), nn.GELU(), nn.Linear(w, w))
         self.text = nn.Sequential(nn.Linear(cfg.text_dim, w), nn.GELU(), nn.Linear(w, w))
         self.film = nn.Linear(w, 2 * w)
-        feat = 3 * w if cfg.image_size else 2 * w
+        feat = (2 + len(cfg.cameras)) * w if cfg.image_size else 2 * w
         #: The compute-heavy "prefix MLP": the module the W8A8 plug-in targets by default.
         self.prefix_mlp = nn.Sequential(
             nn.Linear(feat, cfg.prefix_hidden), nn.GELU(),
@@ -100,15 +111,19 @@ class PrefixEncoder(nn.Module):
         self.norm = nn.LayerNorm(w)
 
     def forward(self, state: torch.Tensor, text: torch.Tensor, image: torch.Tensor | None = None) -> torch.Tensor:
+        """``image``: uint8 [B, cameras, H, W, 3] in ``cfg.cameras`` order ([B, H, W, 3] for one)."""
         t = self.text(text)
         scale, shift = self.film(t).chunk(2, dim=-1)
         o = self.obs(state)
         o = o * (1 + scale) + shift
-        parts = [o, t]
+        parts = [o]
         if self.image is not None:
             assert image is not None, "image variant needs an image"
-            i = self.image(image)
-            parts.insert(1, i * (1 + scale) + shift)
+            views = image[:, None] if image.dim() == 4 else image
+            assert views.shape[1] == len(self.cfg.cameras), f"expected {len(self.cfg.cameras)} camera images"
+            for k, encoder in enumerate([self.image, *self.more_images]):
+                parts.append(encoder(views[:, k]) * (1 + scale) + shift)
+        parts.append(t)
         prefix = self.prefix_mlp(torch.cat(parts, dim=-1))
         return self.norm(prefix.view(len(state), self.cfg.prefix_tokens, self.cfg.width))
 

@@ -17,7 +17,7 @@ import torch
 
 from services.common.policies import CHECKPOINT_ROOT, DEFAULT_POLICY, PRIVILEGED_BASELINE
 from services.common.specs import TensorSpec
-from services.policy_worker.vla.features import IMAGE_INPUTS, PROPRIO_INPUTS, STATE_INPUTS, state_specs, state_vector
+from services.policy_worker.vla.features import PROPRIO_INPUTS, STATE_INPUTS, state_specs, state_vector
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.text import TextEncoder
 
@@ -33,7 +33,7 @@ def save_checkpoint(path: str | os.PathLike, model: ZettaVLA, meta: dict, text_c
              for k, v in model.state_dict().items()}
     torch.save(state, path / "model.pt")
     inputs = [{"name": s.name, "dtype": s.dtype, "shape": list(s.shape), "privileged": s.privileged}
-              for s in state_specs(model.cfg.image_size)]
+              for s in state_specs(model.cfg.image_size, model.cfg.cameras)]
     doc = {"model": model.cfg.to_dict(), "inputs": inputs, **meta,
            "instruction_embeddings": {k: [round(float(x), 6) for x in v] for k, v in sorted(text_cache.items())}}
     (path / "config.json").write_text(json.dumps(doc, indent=1))
@@ -120,13 +120,19 @@ class ZettaVLAPolicy:
             self._expert = None
 
     def input_specs(self) -> list[TensorSpec]:
-        return state_specs(self.cfg.image_size)
+        return state_specs(self.cfg.image_size, self.cfg.cameras)
 
     def state_inputs(self, batch: dict[str, np.ndarray]) -> np.ndarray:
         """The [B, D] float32 state vector stage 1 reads (proprioception alone for the image
         variant); :meth:`encode` builds it once per batch for both the prefix and the noise seeds."""
         names = PROPRIO_INPUTS if self.cfg.image_size else STATE_INPUTS
         return np.ascontiguousarray(state_vector(batch, names), dtype=np.float32)
+
+    def image_inputs(self, batch: dict[str, np.ndarray]) -> np.ndarray | None:
+        """uint8 [B, cameras, H, W, 3] of the cameras the checkpoint reads, None for the state variant."""
+        if not self.cfg.image_size:
+            return None
+        return np.stack([batch[name] for name in self.cfg.cameras], axis=1)
 
     @torch.inference_mode()
     def encode_batch(self, state: np.ndarray, instructions: list[str], image: np.ndarray | None = None) -> torch.Tensor:
@@ -156,7 +162,7 @@ class ZettaVLAPolicy:
         """Stage 1 as served, with each request's noise seed (:meth:`request_seeds`), both from one
         state vector: one batched call, or row by row when :attr:`batch_invariant`."""
         state = self.state_inputs(batch)
-        image = batch[IMAGE_INPUTS[0]] if self.cfg.image_size else None
+        image = self.image_inputs(batch)
         if not self.batch_invariant or len(instructions) == 1:
             prefix = self.encode_batch(state, instructions, image)
         else:

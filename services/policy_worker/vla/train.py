@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from services.common.progress import add_progress_option, progress
+from services.policy_worker.vla.features import CAMERA_INPUTS, IMAGE_INPUTS
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.policy import save_checkpoint
 from services.policy_worker.vla.text import TextEncoder
@@ -76,9 +77,12 @@ def load_demos(paths: list[str]) -> dict:
 
 
 def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
-    """uint8 [B, H, W, C] frames, each shifted by up to ``pad`` pixels in x and y."""
+    """uint8 [B, H, W, C] frames (or [B, cameras, H, W, C]), each shifted by up to ``pad`` pixels
+    in x and y, every camera's frame on its own draw."""
     if pad <= 0:
         return images
+    if images.dim() == 5:
+        return random_shift(images.flatten(0, 1), pad).view(images.shape)
     b, h, w, _ = images.shape
     padded = torch.nn.functional.pad(images.permute(0, 3, 1, 2).float(), (pad, pad, pad, pad), mode="replicate")
     dx = torch.randint(0, 2 * pad + 1, (b,))
@@ -165,6 +169,11 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
 
         states = demos["states"][:, :PROPRIO_DIM]
         images = torch.from_numpy(demos["images"])
+        if images.dim() == 4:  # sets recorded before recipes named their cameras: agentview alone
+            images = images[:, None]
+        if images.shape[1] != len(model_cfg.cameras):
+            raise ValueError(f"the demos hold {images.shape[1]} camera image(s) per frame, the model reads "
+                             f"{list(model_cfg.cameras)}: collect them with the same cameras")
         #: Samples are the transitions that have a frame (every ``image_every`` steps).
         sample_steps = torch.from_numpy(demos["image_steps"])
     else:
@@ -328,6 +337,7 @@ def run_pipeline(out: str, pipe: PipelineConfig, teacher: str, tasks: list[int],
     def gather(name: str, episodes: int, **kw) -> str:
         path = f"{demo_dir}/{name}.npz"
         recipe = DataRecipe(tasks=tasks, teacher=teacher, processes=processes, image_size=model_cfg.image_size,
+                            cameras=list(model_cfg.cameras),
                             image_every=pipe.execute_steps, seeds_per_task=-(-episodes // len(tasks)),
                             max_episodes=episodes, **kw)
         if reuse_demos(recipe, path):
@@ -428,6 +438,8 @@ def main(argv=None) -> int:
     p.add_argument("--time-budget", type=float, default=0.0, help="seconds of training at most (each run)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64)
+    p.add_argument("--cameras", default=",".join(IMAGE_INPUTS),
+                   help=f"image variant: the camera tensors it reads, comma-separated ({', '.join(CAMERA_INPUTS)})")
     p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data)")
     p.add_argument("--lr", type=float, default=PipelineConfig.lr)
     p.add_argument("--threads", type=int, default=TrainConfig.threads,
@@ -436,7 +448,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
-    model_cfg = VLAConfig(image_size=image_size)
+    model_cfg = VLAConfig(image_size=image_size, cameras=tuple(c.strip() for c in a.cameras.split(",") if c.strip()))
     train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr,
                             threads=a.threads)
     if a.data:
