@@ -39,6 +39,7 @@ def test_zetta_train_reproduces_shipped_success(tmp_path: Path, monkeypatch: pyt
     monkeypatch.chdir(work)
     out = work / "ck"
     args = ["train", "--variant", "image", "--image-size", str(doc["model"]["image_size"]), "--out", str(out),
+            "--cameras", ",".join(doc["model"].get("cameras", ["agentview_image"])),
             "--teacher", teacher, "--demo-dir", str(work / "demos"),
             # A runtime knob, not part of the recipe: the shipped checkpoint was trained with it.
             "--threads", str(doc["training"].get("threads", 1))]
