@@ -20,7 +20,7 @@ import numpy as np
 
 from services.common.policies import BENCHMARK_INITS, SAMPLED_LAYOUTS
 from services.common.progress import add_progress_option, progress
-from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, state_vector
+from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, parse_cameras, state_vector
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
 PICK_PLACE_TASKS = (1, 2, 4, 6, 8, 9)
@@ -333,7 +333,7 @@ def main(argv=None) -> int:
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
         list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS))
     recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
-                        image_size=a.image_size, cameras=[c.strip() for c in a.cameras.split(",") if c.strip()],
+                        image_size=a.image_size, cameras=list(parse_cameras(a.cameras)),
                         image_every=a.image_every, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
                         action_noise=a.action_noise, execute_steps=a.execute_steps,

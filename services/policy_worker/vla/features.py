@@ -32,6 +32,11 @@ def check_cameras(cameras: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     return cameras
 
 
+def parse_cameras(text: str) -> tuple[str, ...]:
+    """A ``--cameras`` option (``agentview_image,eye_in_hand_image``), checked."""
+    return check_cameras([c.strip() for c in text.split(",") if c.strip()])
+
+
 def state_specs(image_size: int = 0, cameras: tuple[str, ...] = IMAGE_INPUTS) -> list[TensorSpec]:
     """Input specs of the state variant (``image_size`` 0) or the image variant (proprioception
     and one square RGB image per camera, in ``cameras`` order)."""

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from services.common.progress import add_progress_option, progress
-from services.policy_worker.vla.features import CAMERA_INPUTS, IMAGE_INPUTS
+from services.policy_worker.vla.features import CAMERA_INPUTS, IMAGE_INPUTS, parse_cameras
 from services.policy_worker.vla.model import VLAConfig, ZettaVLA
 from services.policy_worker.vla.policy import save_checkpoint
 from services.policy_worker.vla.text import TextEncoder
@@ -448,7 +448,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
-    model_cfg = VLAConfig(image_size=image_size, cameras=tuple(c.strip() for c in a.cameras.split(",") if c.strip()))
+    model_cfg = VLAConfig(image_size=image_size, cameras=parse_cameras(a.cameras))
     train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr,
                             threads=a.threads)
     if a.data:
