@@ -287,6 +287,19 @@ def test_robosuite_lift_steps_and_truncates() -> None:
         family.close()
 
 
+def test_single_environment_family_accepts_its_one_task_only() -> None:
+    """A one-environment config answers its step budget for its name, "0" or empty, and names its
+    one task when asked for another."""
+    family = get_family("robosuite")({"env_name": "Lift", "max_steps": 40})
+    try:
+        assert [family.max_episode_steps(t) for t in ("", "0", "Lift")] == [40, 40, 40]
+        for task in ("1", "Stack", "lift"):
+            with pytest.raises(ResetError, match=r"robosuite: unknown task .*one task: 'Lift' \(index 0, or empty\)"):
+                family.max_episode_steps(task)
+    finally:
+        family.close()
+
+
 def test_robosuite_lift_observed_after_each_chunk_only() -> None:
     """observe=False steps (inside a chunk) leave no observation but keep what a later one reads."""
     family = get_family("robosuite")({"env_name": "Lift", "max_steps": 40})

@@ -187,3 +187,20 @@ class EnvFamily(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the group's warm environments and caches."""
+
+
+class SingleEnvFamily(EnvFamily):
+    """A family whose configuration holds one environment (``config["env_name"]``) as its only
+    task, with one step budget (``config["max_steps"]``)."""
+
+    def max_episode_steps(self, task: str) -> int:
+        self.check_task(task)
+        return int(self.config["max_steps"])
+
+    def check_task(self, task: str) -> None:
+        """Accept the environment's name, "0" or empty; refuse anything else, naming the one task."""
+        if task not in ("", "0", self.config["env_name"]):
+            raise ResetError(
+                f"{self.name}: unknown task {task!r}; this config has one task: "
+                f"{self.config['env_name']!r} (index 0, or empty)"
+            )

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
+from services.env_worker.families.contract import ConfigError, ResetError, ResetSpec, SingleEnvFamily, Slot
 from services.env_worker.families.episode import EpisodeSlot
 from services.env_worker.families.options import (
     MAX_CAMERA_SIZE,
@@ -296,7 +296,7 @@ def _first_gripper(robot: Any) -> Any:
 
 
 @register_family
-class RobocasaFamily(EnvFamily):
+class RobocasaFamily(SingleEnvFamily):
     """One RoboCasa kitchen environment over a set of layouts and styles.
 
     Environments are pooled: a closed slot parks its environment for the next one (building a
@@ -412,18 +412,6 @@ class RobocasaFamily(EnvFamily):
             high=float(high[0]) if uniform else None,
         )
         return schema, action
-
-    def max_episode_steps(self, task: str) -> int:
-        self.check_task(task)
-        return self.config["max_steps"]
-
-    def check_task(self, task: str) -> None:
-        """A config holds one RoboCasa environment: accept its name, "0" or empty."""
-        if task not in ("", "0", self.config["env_name"]):
-            raise ResetError(
-                f"robocasa: unknown task {task!r}; this config has one task: "
-                f"{self.config['env_name']!r} (index 0, or empty)"
-            )
 
     def init(self) -> Slot:
         env = self._pool.acquire(self.config["env_name"], self._build)

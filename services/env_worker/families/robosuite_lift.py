@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from services.common.specs import TensorSpec
-from services.env_worker.families.contract import ConfigError, EnvFamily, ResetError, ResetSpec, Slot
+from services.env_worker.families.contract import ConfigError, ResetError, ResetSpec, SingleEnvFamily, Slot
 from services.env_worker.families.episode import EpisodeSlot
 from services.env_worker.families.options import (
     MAX_CAMERA_SIZE,
@@ -306,7 +306,7 @@ def retire_env(env: Any) -> None:
 
 
 @register_family
-class RobosuiteFamily(PooledGroup, EnvFamily):
+class RobosuiteFamily(PooledGroup, SingleEnvFamily):
     """Single-arm robosuite tasks with privileged object state.
 
     robosuite has no fixed initial states: the placement is drawn from (seed, init_state_index),
@@ -357,18 +357,6 @@ class RobosuiteFamily(PooledGroup, EnvFamily):
 
     def action_spec(self) -> TensorSpec:
         return OSC_POSE_ACTION
-
-    def max_episode_steps(self, task: str) -> int:
-        self.check_task(task)
-        return self.config["max_steps"]
-
-    def check_task(self, task: str) -> None:
-        """robosuite environments hold one task: accept its name, "0" or empty."""
-        if task not in ("", "0", self.config["env_name"]):
-            raise ResetError(
-                f"robosuite: unknown task {task!r}; this config has one task: "
-                f"{self.config['env_name']!r} (index 0, or empty)"
-            )
 
     def init(self) -> Slot:
         return _RobosuiteSlot(self, self._pool.acquire(self.config["env_name"], self._build))
