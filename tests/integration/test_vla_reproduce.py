@@ -2,9 +2,8 @@
 its interval.
 
 Slow: ``make test-slow``. On a 2-core machine, oracle demos with frames, then training, then 2 x 50
-closed-loop episodes take about two hours (the machine that made the shipped checkpoint,
-2026-12-07: 86 min of pipeline with the wrist camera; the agentview-only recipe took 54 min there,
-and a run of this test on an earlier checkpoint, 2026-12-06, gave shipped 34/50 and reproduced 37/50);
+closed-loop episodes take about two hours (2026-12-07, the wrist-camera checkpoint on an AMD EPYC
+2-core machine: 2 h 02 min, shipped 45/50, reproduced 48/50);
 start it on a quiet machine with time for it. Both checkpoints are evaluated on the same held-out
 seeds (init states the demonstrations never used) and their Wilson intervals must overlap.
 ``ZETTA_REPRODUCE_DIR`` keeps the demonstrations and checkpoints there instead of in a temporary
