@@ -398,3 +398,19 @@ def test_a_wrist_camera_is_declared_and_read_by_an_encoder_of_its_own(tmp_path, 
     assert not np.allclose(base, p.infer(other, instr * 2)), "the wrist frame reaches the actions"
     swapped = dict(batch, agentview_image=batch["eye_in_hand_image"], eye_in_hand_image=batch["agentview_image"])
     assert not np.allclose(base, p.infer(swapped, instr * 2)), "each camera has its own encoder"
+
+
+@pytest.mark.parametrize("module", ["train", "data"])
+@pytest.mark.parametrize("cameras", ["agentview_image,bogus", "eye_in_hand_image,eye_in_hand_image", ","])
+def test_a_bad_cameras_option_is_a_usage_error_naming_the_choices(module: str, cameras: str, tmp_path, capsys) -> None:
+    """zetta train and the data CLI refuse an unknown, repeated or empty camera list before any work,
+    with exit status 2 and the cameras they accept."""
+    import importlib
+
+    main = importlib.import_module(f"services.policy_worker.vla.{module}").main
+    with pytest.raises(SystemExit) as exc:
+        main(["--cameras", cameras, "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --cameras" in err and "['agentview_image', 'eye_in_hand_image'], each once" in err
+    assert not (tmp_path / "out").exists()

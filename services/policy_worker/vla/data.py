@@ -312,7 +312,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds-per-task", type=int, default=30)
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--image-size", type=int, default=0)
-    p.add_argument("--cameras", default=",".join(IMAGE_INPUTS),
+    p.add_argument("--cameras", type=parse_cameras, default=",".join(IMAGE_INPUTS),
                    help="image recipes: the camera tensors recorded at each frame, comma-separated")
     p.add_argument("--image-every", type=int, default=DataRecipe.image_every,
                    help="render a frame every N steps (the served policy's execute_steps)")
@@ -333,7 +333,7 @@ def main(argv=None) -> int:
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
         list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS))
     recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
-                        image_size=a.image_size, cameras=list(parse_cameras(a.cameras)),
+                        image_size=a.image_size, cameras=list(a.cameras),
                         image_every=a.image_every, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,
                         action_noise=a.action_noise, execute_steps=a.execute_steps,

@@ -8,6 +8,8 @@ gap (LIBERO-PRO task redirection and position swap) the harness is meant to clos
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 
 from services.common.policies import PROPRIO_INPUTS
@@ -33,8 +35,12 @@ def check_cameras(cameras: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 
 def parse_cameras(text: str) -> tuple[str, ...]:
-    """A ``--cameras`` option (``agentview_image,eye_in_hand_image``), checked."""
-    return check_cameras([c.strip() for c in text.split(",") if c.strip()])
+    """The argparse type of a ``--cameras`` option (``agentview_image,eye_in_hand_image``): a bad
+    name is a usage error with :func:`check_cameras`' message, not a traceback."""
+    try:
+        return check_cameras([c.strip() for c in text.split(",") if c.strip()])
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def state_specs(image_size: int = 0, cameras: tuple[str, ...] = IMAGE_INPUTS) -> list[TensorSpec]:

@@ -438,7 +438,7 @@ def main(argv=None) -> int:
     p.add_argument("--time-budget", type=float, default=0.0, help="seconds of training at most (each run)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64)
-    p.add_argument("--cameras", default=",".join(IMAGE_INPUTS),
+    p.add_argument("--cameras", type=parse_cameras, default=",".join(IMAGE_INPUTS),
                    help=f"image variant: the camera tensors it reads, comma-separated ({', '.join(CAMERA_INPUTS)})")
     p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data)")
     p.add_argument("--lr", type=float, default=PipelineConfig.lr)
@@ -448,7 +448,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     image_size = a.image_size if a.variant == "image" else 0
     out = a.out or f"out/checkpoints/zetta-vla-{a.variant}"
-    model_cfg = VLAConfig(image_size=image_size, cameras=parse_cameras(a.cameras))
+    model_cfg = VLAConfig(image_size=image_size, cameras=a.cameras)
     train_cfg = TrainConfig(steps=a.steps, batch_size=a.batch_size, seed=a.seed, time_budget_s=a.time_budget, lr=a.lr,
                             threads=a.threads)
     if a.data:
