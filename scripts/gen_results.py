@@ -3,6 +3,7 @@
   python scripts/gen_results.py                      # every page whose results file is there
   python scripts/gen_results.py oracle throughput    # only these topics
   python scripts/gen_results.py evolution --from runs/experiment/results.json   # publish a run, then render
+      # (an evolution run's store indexes are packed beside its page too: docs/results/evolution-stores/)
   python scripts/gen_results.py --check              # exit 1 when a page differs from its results file
   python scripts/gen_results.py evolution --superseded "rerun: zetta evolve experiment ..."
       # the shipped checkpoint changed and the run is not re-measured yet: its page says so
@@ -41,6 +42,9 @@ TOPICS: dict[str, tuple[str, str]] = {
     "harness": ("scripts/eval_harness.py", "page"),
     "demo": ("services.ops.mission_demo", "page"),
 }
+
+#: Topics whose run keeps stores: publishing one packs their indexes (services/evolver/store_archive.py).
+STORE_TOPICS = ("evolution", "evolution-goal")
 
 
 def renderer(topic: str) -> Callable[[Mapping[str, Any]], str]:
@@ -99,6 +103,15 @@ def main(argv: list[str] | None = None) -> int:
     if a.source is not None:
         if len(a.topics) != 1:
             p.error("--from goes with exactly one topic")
+        if a.topics[0] in STORE_TOPICS:
+            from services.evolver import store_archive
+
+            try:
+                for path in store_archive.pack(a.source.parent, json.loads(a.source.read_text()), a.results_dir,
+                                               a.topics[0]):
+                    print(f"wrote {path} ({path.stat().st_size} bytes)")
+            except ValueError as exc:
+                p.error(f"{a.source}: {exc}")
         shutil.copyfile(a.source, a.results_dir / f"{a.topics[0]}.json")
         found = sorted({*found, a.topics[0]})
     if a.superseded is not None:
