@@ -19,6 +19,7 @@ DEFAULT_QUERIES = ("object", "target")
 #: Longest motion one Move call may run: well below an episode, like a recovery's step budget.
 MAX_MOTION_STEPS = 100
 DEFAULT_TOLERANCE_M = 0.005
+DEFAULT_ANGLE_TOLERANCE_RAD = 0.05
 
 
 def check_queries(queries: Sequence[str]) -> list[str]:
@@ -48,3 +49,12 @@ def check_motion(session_id: str, m: types_pb2.Motion) -> None:
         raise bad(f"tolerance_m must be in [0, 0.5] metres (0: {DEFAULT_TOLERANCE_M}), got {m.tolerance_m}")
     if not (np.isfinite(m.max_action) and 0.0 <= m.max_action <= 1.0):
         raise bad(f"max_action must be in (0, 1] (0: 1), got {m.max_action}")
+    if len(m.orientation) not in (0, 4) or not np.all(np.isfinite(m.orientation)) or (
+            len(m.orientation) and abs(float(np.linalg.norm(m.orientation)) - 1.0) > 0.01):
+        raise bad(f"orientation must be a unit quaternion [x, y, z, w] (norm within 0.01 of 1) or empty, "
+                  f"got {list(m.orientation)[:8]}")
+    if len(m.orientation) and m.hand_down:
+        raise bad("orientation and hand_down both set the hand's orientation; send one")
+    if not (np.isfinite(m.angle_tolerance_rad) and 0.0 <= m.angle_tolerance_rad <= np.pi):
+        raise bad(f"angle_tolerance_rad must be in [0, pi] (0: {DEFAULT_ANGLE_TOLERANCE_RAD}), "
+                  f"got {m.angle_tolerance_rad}")

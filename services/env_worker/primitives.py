@@ -1,7 +1,8 @@
 """The harness's tools for any client: perception estimates and bounded closed-loop motions.
 
 These are the paper's API categories "Perception & Planning" (noisy object and target boxes, grasp
-proposals) and "Low-Level Control" (servo the grip site to a position with a gripper command),
+proposals) and "Low-Level Control" (servo the grip site to a position or a pose, with a gripper
+command),
 built from the same code the harness runtime's critics and recoveries use
 (services/harness/runtime/perception.py, runtime/library/tools.py), so an external agent reads and
 acts exactly as a harness does. Both run on the slot's thread like every other slot operation.
@@ -14,7 +15,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from services.common import grpc_errors as ge
-from services.common.primitives import DEFAULT_TOLERANCE_M
+from services.common.primitives import DEFAULT_ANGLE_TOLERANCE_RAD, DEFAULT_TOLERANCE_M
+from services.common.rotations import quat_to_mat, rotvec
 from services.env_worker.chunks import ChunkRun, run_chunk, step_result
 from services.env_worker.slots import BoundSlot
 from services.harness.runtime.library import tools
@@ -59,16 +61,30 @@ def require_no_harness(slot: BoundSlot) -> None:
             "without one", [slot.session_id])
 
 
+def _arrived(m: types_pb2.Motion, goal: np.ndarray, eef: np.ndarray, desired: np.ndarray | None,
+             quat: np.ndarray | None, tolerance: float, angle_tolerance: float) -> bool:
+    """Whether every goal the motion names (position, orientation) is within its tolerance."""
+    if not len(m.position) and desired is None:
+        return False
+    if len(m.position) and np.linalg.norm(goal - eef) > tolerance:
+        return False
+    return desired is None or (quat is not None
+                               and float(np.linalg.norm(rotvec(desired @ quat_to_mat(quat).T))) <= angle_tolerance)
+
+
 def move(slot: BoundSlot, m: types_pb2.Motion) -> types_pb2.StepResult:
-    """Servo the grip site toward ``m.position`` one control step at a time (on the slot's thread),
-    at most ``m.max_steps`` steps, fewer once within tolerance; without a position, hold where the
-    hand is for all ``max_steps`` (a gripper closing). Cameras render only for the final observation."""
+    """Servo the grip site toward ``m.position`` and the hand toward ``m.orientation`` one control
+    step at a time (on the slot's thread), at most ``m.max_steps`` steps, fewer once every goal the
+    motion names is within tolerance; naming neither, hold where the hand is for all ``max_steps``
+    (a gripper closing). Cameras render only for the final observation."""
     slot.require_episode()
     obs = slot.last_obs
     assert obs is not None
     start = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
     goal = np.asarray(m.position, dtype=np.float64) if len(m.position) else start
     tolerance = m.tolerance_m or DEFAULT_TOLERANCE_M
+    angle_tolerance = m.angle_tolerance_rad or DEFAULT_ANGLE_TOLERANCE_RAD
+    desired = quat_to_mat(np.asarray(m.orientation, dtype=np.float64)) if len(m.orientation) else None
     dim = slot.family.action_spec().shape[-1]
     dtype = np.dtype(slot.family.action_spec().dtype)
     executed: list[np.ndarray] = []
@@ -77,11 +93,12 @@ def move(slot: BoundSlot, m: types_pb2.Motion) -> types_pb2.StepResult:
     run: ChunkRun | None = None
     for _ in range(m.max_steps):
         eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
-        if executed and len(m.position) and np.linalg.norm(goal - eef) <= tolerance:
+        quat = np.asarray(obs["robot0_eef_quat"], dtype=np.float64) if "robot0_eef_quat" in obs else None
+        if executed and _arrived(m, goal, eef, desired, quat, tolerance, angle_tolerance):
             break
         action = tools.move_action(eef, goal, m.gripper, max_action=m.max_action or 1.0)
-        if m.hand_down and "robot0_eef_quat" in obs:
-            action[3:6] = tools.orient_action(np.asarray(obs["robot0_eef_quat"], dtype=np.float64), tools.DOWN)
+        if quat is not None and (desired is not None or m.hand_down):
+            action[3:6] = tools.orient_action(quat, tools.DOWN if desired is None else desired)
         chunk = np.clip(action[:dim], -1.0, 1.0).astype(dtype)[None]
         run = run_chunk(slot, chunk, render=False)
         executed.append(run.actions[0])

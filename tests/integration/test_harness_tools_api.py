@@ -52,6 +52,31 @@ async def test_move_servos_the_grip_site_above_the_cube_in_bounded_steps(gw) -> 
     assert np.abs(held.executed_actions[:, :3]).max() < 0.2
 
 
+def _turned_about_z(q: np.ndarray, angle: float) -> np.ndarray:
+    """The xyzw quaternion of q's rotation followed by ``angle`` about the world z axis."""
+    x, y, z, w = q
+    c, s = np.cos(angle / 2), np.sin(angle / 2)  # (0, 0, s, c) * (x, y, z, w), Hamilton product
+    return np.array([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z])
+
+
+async def test_move_reaches_a_pose_position_and_orientation(gw) -> None:
+    """A motion to a pose turns the hand 0.4 rad about the vertical while the grip site holds its
+    position, and stops once both are within tolerance, before its step bound."""
+    from services.common.rotations import quat_to_mat, rotvec
+
+    group = await gw.create_sessions(env_family="robosuite", n=1, env_config=LIFT)
+    await group.reset(seed=5)
+    start = (await group.observe())[0]
+    here = np.asarray(start["robot0_eef_pos"], np.float64)
+    goal = _turned_about_z(np.asarray(start["robot0_eef_quat"], np.float64), 0.4)
+    res = await group[0].move(here, max_steps=80, tolerance_m=0.01, orientation=goal, angle_tolerance_rad=0.05)
+    reached = quat_to_mat(res.observation["robot0_eef_quat"])
+    assert np.linalg.norm(rotvec(quat_to_mat(goal) @ reached.T)) <= 0.05
+    assert np.linalg.norm(res.observation["robot0_eef_pos"] - here) <= 0.01
+    assert 1 <= res.executed_actions.shape[0] < 80
+    assert np.abs(res.executed_actions[:, 5]).max() > 0.1, "it turned the hand about z"
+
+
 async def test_bad_tool_requests_are_refused_by_name(gw) -> None:
     group = await gw.create_sessions(env_family="robosuite", n=1, env_config=LIFT)
     sid = group.ids[0]
@@ -69,6 +94,10 @@ async def test_bad_tool_requests_are_refused_by_name(gw) -> None:
         (types_pb2.Motion(max_steps=101), "max_steps"),
         (types_pb2.Motion(max_steps=5, gripper=2.0), "gripper"),
         (types_pb2.Motion(max_steps=5, max_action=-0.5), "max_action"),
+        (types_pb2.Motion(max_steps=5, orientation=[0.0, 0.0, 1.0]), "orientation"),
+        (types_pb2.Motion(max_steps=5, orientation=[0.0, 0.0, 0.0, 2.0]), "orientation"),
+        (types_pb2.Motion(max_steps=5, orientation=[0.0, 0.0, 0.0, 1.0], hand_down=True), "orientation"),
+        (types_pb2.Motion(max_steps=5, angle_tolerance_rad=-0.1), "angle_tolerance_rad"),
     ]
     for motion, field in bad_motions:
         with pytest.raises(ZettaError) as err:

@@ -195,9 +195,12 @@ def _perceive_result(m: types_pb2.PerceiveResult) -> PerceiveResult:
 
 
 def _motion(position: Sequence[float] | np.ndarray | None, gripper: float, max_steps: int, tolerance_m: float,
-            hand_down: bool, max_action: float) -> types_pb2.Motion:
+            hand_down: bool, max_action: float, orientation: Sequence[float] | np.ndarray | None = None,
+            angle_tolerance_rad: float = 0.0) -> types_pb2.Motion:
     return types_pb2.Motion(position=[] if position is None else [float(v) for v in position], gripper=gripper,
-                            max_steps=max_steps, tolerance_m=tolerance_m, hand_down=hand_down, max_action=max_action)
+                            max_steps=max_steps, tolerance_m=tolerance_m, hand_down=hand_down, max_action=max_action,
+                            orientation=[] if orientation is None else [float(v) for v in orientation],
+                            angle_tolerance_rad=angle_tolerance_rad)
 
 
 def _harness_report(m: types_pb2.HarnessReport | None) -> HarnessReport | None:
@@ -491,11 +494,16 @@ class SessionGroup:
 
     async def move(self, positions: Sequence[Sequence[float] | np.ndarray | None] | None = None, gripper: float = 0.0,
                    max_steps: int = 20, tolerance_m: float = 0.0, hand_down: bool = False,
-                   max_action: float = 0.0) -> list[StepResult]:
+                   max_action: float = 0.0,
+                   orientations: Sequence[Sequence[float] | np.ndarray | None] | None = None,
+                   angle_tolerance_rad: float = 0.0) -> list[StepResult]:
         """A bounded closed-loop motion in each session: servo the grip site to ``positions[i]`` (None or
-        omitted: hold) with the gripper command (-1 open, +1 close, 0 keep) for at most ``max_steps``."""
+        omitted: hold) and the hand to ``orientations[i]`` (an xyzw world-frame quaternion; None: free)
+        with the gripper command (-1 open, +1 close, 0 keep) for at most ``max_steps``."""
         goals = list(positions) if positions is not None else [None] * len(self)
-        motions = [_motion(p, gripper, max_steps, tolerance_m, hand_down, max_action) for p in goals]
+        turns = list(orientations) if orientations is not None else [None] * len(self)
+        motions = [_motion(p, gripper, max_steps, tolerance_m, hand_down, max_action, q, angle_tolerance_rad)
+                   for p, q in zip(goals, turns, strict=True)]
         resp = await self.gateway.call("Move", gateway_pb2.MoveRequest(session_ids=self.ids, motions=motions))
         return [_step_result(r) for r in resp.results]
 
@@ -553,9 +561,11 @@ class Session:
 
     async def move(self, position: Sequence[float] | np.ndarray | None = None, gripper: float = 0.0,
                    max_steps: int = 20, tolerance_m: float = 0.0, hand_down: bool = False,
-                   max_action: float = 0.0) -> StepResult:
-        """A bounded closed-loop motion (SessionGroup.move)."""
-        motion = _motion(position, gripper, max_steps, tolerance_m, hand_down, max_action)
+                   max_action: float = 0.0, orientation: Sequence[float] | np.ndarray | None = None,
+                   angle_tolerance_rad: float = 0.0) -> StepResult:
+        """A bounded closed-loop motion to a position or a pose (SessionGroup.move)."""
+        motion = _motion(position, gripper, max_steps, tolerance_m, hand_down, max_action, orientation,
+                         angle_tolerance_rad)
         return _step_result(await self.gateway._batcher.submit("Move", self.session_id, motion))
 
     def stream(self) -> "StepStream":
