@@ -414,3 +414,28 @@ def test_a_bad_cameras_option_is_a_usage_error_naming_the_choices(module: str, c
     err = capsys.readouterr().err
     assert "argument --cameras" in err and "['agentview_image', 'eye_in_hand_image'], each once" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("suite", ["libero_goal_swap", "libero_goal_task", "libero_goal_lan", "libero_goal_object"])
+def test_demos_are_never_collected_on_a_libero_pro_variant(suite: str, tmp_path, capsys) -> None:
+    """The variants are what the policy is evaluated on: the recipe and the data CLI refuse them."""
+    from services.policy_worker.vla.data import DataRecipe, main
+
+    with pytest.raises(ValueError, match="LIBERO-PRO variant"):
+        DataRecipe(suite=suite).episodes()
+    with pytest.raises(SystemExit) as exc:
+        main(["--suite", suite, "--tasks", "0", "--out", str(tmp_path / "d.npz")])
+    assert exc.value.code == 2 and "LIBERO-PRO variant" in capsys.readouterr().err
+    assert not (tmp_path / "d.npz.parts").exists()
+
+
+def test_demos_on_another_libero_suite_name_their_tasks(tmp_path, capsys) -> None:
+    """libero_goal's default task list means nothing on libero_90: the CLI asks for --tasks; the
+    recipe lists that suite's episodes."""
+    from services.policy_worker.vla.data import DataRecipe, main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--suite", "libero_90", "--out", str(tmp_path / "d.npz")])
+    assert exc.value.code == 2 and "--tasks is required on libero_90" in capsys.readouterr().err
+    recipe = DataRecipe(suite="libero_90", tasks=[9, 27], seeds_per_task=2, seed_offset=1000)
+    assert recipe.episodes() == [(9, 1000, 0), (27, 1000, 0), (9, 1001, 1), (27, 1001, 1)]

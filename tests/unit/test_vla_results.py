@@ -88,5 +88,15 @@ def test_an_evaluation_resumes_from_its_rows(tmp_path) -> None:
     lines = [{**same, "task": 0, "seed": 1, "success": True}, {**same, "task": 0, "seed": 2, "error": "boom"},
              {**same, "execute_steps": 2, "task": 0, "seed": 3, "success": True}]
     path.write_text("\n".join(json.dumps(x) for x in lines) + "\n")
-    assert list(done_rows(str(path), "m", "s", 4, {})) == [(0, 1)]
+    assert list(done_rows(str(path), "m", "s", 4, {})) == [(0, 1, 1)]
     assert done_rows(str(tmp_path / "none.jsonl"), "m", "s", 4, {}) == {}
+
+
+def test_a_sampled_layout_row_is_not_the_benchmark_episode_of_its_seed(tmp_path) -> None:
+    """Rows are done by (task, seed, init state): an evaluation on sampled layouts (init -1) and one
+    on the benchmark's states resume from their own rows in a shared file."""
+    path = tmp_path / "e.jsonl"
+    same = {"model": "m", "suite": "s", "execute_steps": 4, "env": {}, "task": 0, "success": True}
+    lines = [{**same, "seed": 51, "init_state_index": -1}, {**same, "seed": 52, "init_state_index": 2}]
+    path.write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    assert sorted(done_rows(str(path), "m", "s", 4, {})) == [(0, 51, -1), (0, 52, 2)]

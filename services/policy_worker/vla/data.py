@@ -2,9 +2,10 @@
 
 The teacher is any :class:`~services.policy_worker.models.base.PolicyModel` (the full scripted
 "oracle" when it is registered, else "scripted-pick-place", which solves the six pick-and-place
-tasks of LIBERO-Goal). Only the original LIBERO-Goal tasks are used, never a LIBERO-PRO variant;
-only successful episodes are kept. Episodes run in worker processes (robosuite's Python does not
-scale in threads).
+tasks of LIBERO-Goal). Demos come from LIBERO's own suites (libero_goal by default; libero_90's
+scenes show the same objects elsewhere), never from a LIBERO-PRO variant, which is what the policy
+is evaluated on; only successful episodes are kept. Episodes run in worker processes (robosuite's
+Python does not scale in threads).
 """
 
 from __future__ import annotations
@@ -80,12 +81,23 @@ class DataRecipe:
         """(task, seed, init_state_index), interleaved over tasks so a time budget cuts evenly."""
         from services.env_worker.families import SAMPLED_LAYOUT
 
+        check_training_suite(self.suite)
         if self.init_states not in (BENCHMARK_INITS, SAMPLED_LAYOUTS):
             raise ValueError(f"init_states {self.init_states!r}: use {BENCHMARK_INITS!r} or {SAMPLED_LAYOUTS!r}")
         sampled = self.init_states == SAMPLED_LAYOUTS
         eps = [(t, self.seed_offset + s, SAMPLED_LAYOUT if sampled else (self.seed_offset + s) % 50)
                for s in range(self.seeds_per_task) for t in self.tasks]
         return eps[: self.max_episodes] if self.max_episodes else eps
+
+
+def check_training_suite(suite: str) -> None:
+    """Refuse a LIBERO-PRO variant: its layouts and instructions are the evaluation's, and a
+    policy that has seen them says nothing about generalising to them."""
+    from services.env_worker.families.libero import LIBERO_PRO_VARIANTS
+
+    if suite.endswith(tuple(f"_{v}" for v in LIBERO_PRO_VARIANTS)):
+        raise ValueError(f"suite {suite!r} is a LIBERO-PRO variant, which the policy is evaluated on; "
+                         "train on a LIBERO suite such as libero_goal or libero_90")
 
 
 def _worker(recipe: dict, jobs, results) -> None:
@@ -305,10 +317,13 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
 def main(argv=None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(description="collect teacher demonstrations on LIBERO-Goal")
+    p = argparse.ArgumentParser(description="collect teacher demonstrations on a LIBERO suite")
     p.add_argument("--out", default="out/demos/libero_goal_state.npz")
     p.add_argument("--teacher", default="")
-    p.add_argument("--tasks", default="", help="comma-separated task indices (default: all the teacher solves)")
+    p.add_argument("--suite", default=DataRecipe.suite,
+                   help="LIBERO suite the demos come from (libero_goal, libero_90, ...; never a LIBERO-PRO variant)")
+    p.add_argument("--tasks", default="", help="comma-separated task indices (default on libero_goal: all the "
+                   "teacher solves; required on other suites)")
     p.add_argument("--seeds-per-task", type=int, default=30)
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--image-size", type=int, default=0)
@@ -329,10 +344,16 @@ def main(argv=None) -> int:
     p.add_argument("--student-noise", default=DataRecipe.student_noise, choices=("gaussian", "zero"),
                    help="DAgger: the student's flow start")
     a = p.parse_args(argv)
+    try:
+        check_training_suite(a.suite)
+    except ValueError as exc:
+        p.error(str(exc))
+    if a.suite != DataRecipe.suite and not a.tasks:
+        p.error(f"--tasks is required on {a.suite} (the default task list is libero_goal's)")
     teacher = a.teacher or default_teacher()
     tasks = [int(t) for t in a.tasks.split(",")] if a.tasks else (
         list(range(10)) if teacher != "scripted-pick-place" else list(PICK_PLACE_TASKS))
-    recipe = DataRecipe(tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
+    recipe = DataRecipe(suite=a.suite, tasks=tasks, teacher=teacher, seeds_per_task=a.seeds_per_task, processes=a.processes,
                         image_size=a.image_size, cameras=list(a.cameras),
                         image_every=a.image_every, time_budget_s=a.time_budget,
                         dagger_checkpoint=a.dagger_checkpoint, beta=a.beta, seed_offset=a.seed_offset,

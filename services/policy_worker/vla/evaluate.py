@@ -67,24 +67,30 @@ def _worker(model: str, env: dict, suite: str, execute_steps: int, jobs, results
 
 
 def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_path: str, processes: int = 2,
-             execute_steps: int = 4, env: dict | None = None, log=print) -> list[dict]:
+             execute_steps: int = 4, env: dict | None = None, log=print, sampled: bool = False) -> list[dict]:
     """Run the episodes in ``processes`` workers, appending one JSON row each to ``out_path``.
 
-    Rows already in ``out_path`` for this model, suite, execute_steps and env count as done, so
-    an evaluation that was cut off continues where it stopped. Raises when a worker process dies
-    with episodes left (killed for memory, say), instead of moving on with a partial suite."""
+    Seed s starts from benchmark init state s % 50, or with ``sampled`` from the layout LIBERO's
+    placement sampler draws from s: none of the 50 fixed states, so a policy can be compared on
+    them without spending the states a published split holds.
+
+    Rows already in ``out_path`` for this model, suite, execute_steps, env and init state count as
+    done, so an evaluation that was cut off continues where it stopped. Raises when a worker
+    process dies with episodes left (killed for memory, say), instead of moving on with a partial suite."""
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     # Each process runs its own share of the tasks: a family keeps a warm env (with its renderer,
     # about 0.5 GB) per task it has run, so every process running every task costs ~5 GB each.
     queues = [ctx.Queue() for _ in range(processes)]
-    episodes = [(t, s, s % 50) for s in seeds for t in tasks]
+    from services.env_worker.families import SAMPLED_LAYOUT
+
+    episodes = [(t, s, SAMPLED_LAYOUT if sampled else s % 50) for s in seeds for t in tasks]
     done = done_rows(out_path, model, suite, execute_steps, env or {})
-    rows = [done[(t, s)] for t, s, _ in episodes if (t, s) in done]
+    rows = [done[e] for e in episodes if e in done]
     if rows:
         log(f"{suite}: {len(rows)} of {len(episodes)} episodes already in {out_path}")
     for e in episodes:
-        if (e[0], e[1]) not in done:
+        if e not in done:
             queues[tasks.index(e[0]) % processes].put(e)
     for q in queues:
         q.put(None)
@@ -120,8 +126,8 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
     return rows
 
 
-def done_rows(path: str, model: str, suite: str, execute_steps: int, env: dict) -> dict[tuple[int, int], dict]:
-    """Valid rows of an earlier run with the same settings, by (task, seed)."""
+def done_rows(path: str, model: str, suite: str, execute_steps: int, env: dict) -> dict[tuple[int, int, int], dict]:
+    """Valid rows of an earlier run with the same settings, by (task, seed, init state index)."""
     if not Path(path).exists():
         return {}
     out = {}
@@ -131,7 +137,7 @@ def done_rows(path: str, model: str, suite: str, execute_steps: int, env: dict) 
         r = json.loads(line)
         if ("error" not in r and r.get("model") == model and r.get("suite") == suite
                 and r.get("execute_steps") == execute_steps and r.get("env", {}) == env):
-            out[(r["task"], r["seed"])] = r
+            out[(r["task"], r["seed"], r.get("init_state_index", r["seed"] % 50))] = r
     return out
 
 
@@ -171,6 +177,9 @@ def main(argv=None) -> int:
     p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
     p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed %% 50")
     p.add_argument("--seed-offset", type=int, default=0)
+    p.add_argument("--sampled-layouts", action="store_true",
+                   help="start each episode from the layout sampled from its seed, none of the benchmark's "
+                        "50 init states (a comparison that spends no published split)")
     p.add_argument("--execute-steps", type=int, default=EXECUTE_STEPS,
                    help=f"actions of each chunk run per policy call (default {EXECUTE_STEPS})")
     p.add_argument("--processes", type=int, default=2)
@@ -195,7 +204,8 @@ def main(argv=None) -> int:
     rows = []
     start = time.monotonic()
     for suite in a.suites.split(","):
-        rows += evaluate(a.model, suite, tasks, seeds, a.out, a.processes, a.execute_steps, env)
+        rows += evaluate(a.model, suite, tasks, seeds, a.out, a.processes, a.execute_steps, env,
+                         sampled=a.sampled_layouts)
     print(table(rows))
     if a.results:
         from services.policy_worker.vla.results import main as render_page
