@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     p.add_argument("--model", default=DEFAULT_POLICY)
     p.add_argument("--suites", default="libero_goal,libero_goal_task,libero_goal_swap")
     p.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
-    p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds 0..N-1, init state = seed %% 50")
+    p.add_argument("--seeds", type=int, default=10, help="episodes per task: seeds offset..offset+N-1, init state = seed %% 50 (or sampled, --sampled-layouts)")
     p.add_argument("--seed-offset", type=int, default=0)
     p.add_argument("--sampled-layouts", action="store_true",
                    help="start each episode from the layout sampled from its seed, none of the benchmark's "
