@@ -263,3 +263,60 @@ def test_nominal_reference_runs_once_on_the_original_suite(evo_stack: Endpoints,
     assert not store.query(suite="libero_goal_lan")
     Evolution(cfg, store, run, None).nominal_successes()
     assert len(store.query()) == 10  # read back, not run again
+
+
+@pytest.mark.timeout(1800)
+def test_the_evolver_service_admits_critic_code_an_llm_wrote(evo_stack: Endpoints, tmp_path: Path) -> None:
+    """The same loopback LLM through the evolver service: a job with ``spec.llm`` on a service started
+    with ZETTA_EVOLVER_LLM_URL runs to SUCCEEDED, and its store holds the admitted LLM-written critic."""
+    import subprocess
+    import sys
+    import time
+
+    import grpc
+
+    from services.ops.local_stack import free_port, wait_healthy
+    from tests.integration.test_evolver_service import service_env
+    from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
+
+    server = HTTPServer(("127.0.0.1", 0), _LLM)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    port = free_port()
+    log = open(tmp_path / "evolver.log", "wb")
+    proc = subprocess.Popen([sys.executable, "-m", "services.evolver.main"], stdout=log, stderr=subprocess.STDOUT,
+                            env=service_env(ZETTA_EVOLVER_PORT=str(port), ZETTA_METRICS_PORT="-1",
+                                            ZETTA_GATEWAY_ADDRESS=evo_stack.gateway, ZETTA_CRITIC_ADDR=evo_stack.registry,
+                                            ZETTA_POLICY_WORKER_ADDR=evo_stack.policy,
+                                            ZETTA_EVOLVER_STORE=str(tmp_path / "jobs"),
+                                            ZETTA_EVOLVER_LLM_URL=f"http://127.0.0.1:{server.server_address[1]}/v1",
+                                            ZETTA_EVOLVER_LLM_MODEL="loopback"),
+                            start_new_session=True)
+    asked = len(_LLM.requests)
+    try:
+        wait_healthy(f"127.0.0.1:{port}", timeout=60, proc=proc, log=tmp_path / "evolver.log")
+        spec = evolver_pb2.EvolutionSpec(suite="libero_goal", tasks=[TASK], rounds=1, dev_seeds=3, heldout_seeds=2,
+                                         test_seeds=2, model=WEAK, max_steps=MAX_STEPS, max_clusters=1,
+                                         max_candidates=1, name="svc-llm", llm=True)
+        with grpc.insecure_channel(f"127.0.0.1:{port}") as ch:
+            stub = evolver_pb2_grpc.EvolverServiceStub(ch)
+            stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="llm", spec=spec), timeout=30)
+            deadline = time.monotonic() + 1500
+            while time.monotonic() < deadline:
+                status = stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id="llm"), timeout=30).status
+                if status.state not in (evolver_pb2.EVOLUTION_STATE_PENDING, evolver_pb2.EVOLUTION_STATE_RUNNING):
+                    break
+                time.sleep(2.0)
+        assert status.state == evolver_pb2.EVOLUTION_STATE_SUCCEEDED, status.error
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=60)
+        log.close()
+        server.shutdown()
+        server.server_close()
+    assert len(_LLM.requests) > asked, "the service asked the LLM"
+    store = RolloutStore(status.store_path)
+    (admitted,) = store.events("admitted")
+    (patch,) = admitted["patches"]
+    assert patch["source"] == "llm" and patch["template"] == "code"
+    assert admitted["verdict"]["control"]["successes"] == 0
