@@ -3,6 +3,9 @@ resume where they were cut off, the shift augmentation, the start-up input check
 
 from __future__ import annotations
 
+import json
+import re
+
 import numpy as np
 import pytest
 
@@ -197,3 +200,31 @@ def test_training_refuses_frames_of_other_cameras_than_the_model_reads(tmp_path)
     with pytest.raises(ValueError, match="1 camera image"):
         train([path], str(tmp_path / "ck"), cfg, TrainConfig(steps=1, batch_size=2), log=lambda *_: None,
               text_cache=TEXT)
+
+
+def test_a_fine_tune_keeps_the_cameras_of_the_checkpoint_it_starts_from(tmp_path) -> None:
+    """With ``init``, the demos are checked against the starting checkpoint's cameras, not the
+    caller's model configuration (the CLI's defaults), and the result reads what it read."""
+    rng = np.random.default_rng(1)
+
+    def demos(name: str, cameras: int) -> str:
+        path = str(tmp_path / name)
+        np.savez(path, states=rng.standard_normal((8, 156)).astype(np.float32),
+                 actions=rng.uniform(-1, 1, (8, 7)).astype(np.float32), episode_lengths=np.array([8]),
+                 instructions=np.array(["open the top drawer"]),
+                 images=rng.integers(0, 255, (4, cameras, 16, 16, 3), dtype=np.uint8), image_steps=np.arange(0, 8, 2))
+        return path
+
+    both = ("agentview_image", "eye_in_hand_image")
+    small = dict(image_size=16, width=8, prefix_hidden=8, expert_hidden=8)
+    quiet = dict(log=lambda *_: None, text_cache=TEXT)
+    train([demos("two.npz", 2)], str(tmp_path / "base"), VLAConfig(**small, cameras=both),
+          TrainConfig(steps=1, batch_size=2), **quiet)
+    agentview_only = VLAConfig(image_size=64)
+    train([demos("two-more.npz", 2)], str(tmp_path / "tuned"), agentview_only, TrainConfig(steps=1, batch_size=2),
+          init=str(tmp_path / "base"), **quiet)
+    saved = json.loads((tmp_path / "tuned" / "config.json").read_text())["model"]
+    assert tuple(saved["cameras"]) == both and saved["image_size"] == 16
+    with pytest.raises(ValueError, match=f"the model of {re.escape(str(tmp_path / 'base'))} reads .*--cameras {','.join(both)}"):
+        train([demos("one.npz", 1)], str(tmp_path / "bad"), agentview_only, TrainConfig(steps=1, batch_size=2),
+              init=str(tmp_path / "base"), **quiet)

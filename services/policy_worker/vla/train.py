@@ -147,9 +147,14 @@ def chunk_targets(actions: np.ndarray, lengths: np.ndarray, chunk: int) -> np.nd
 
 def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = None, cfg: TrainConfig | None = None,
           log=print, text_cache: dict | None = None, init: str = "", extra_meta: dict | None = None) -> dict:
-    """Train (or, with ``init``, fine-tune) on the demo files and save a checkpoint to ``out_dir``."""
+    """Train (or, with ``init``, fine-tune) on the demo files and save a checkpoint to ``out_dir``.
+
+    A fine-tune keeps the architecture of the checkpoint it starts from (its image size and
+    cameras): ``model_cfg`` then only names what a new model would be."""
     cfg = cfg or TrainConfig()
     model_cfg = model_cfg or VLAConfig()
+    if init:
+        model_cfg = VLAConfig.from_dict(json.loads((Path(init) / "config.json").read_text())["model"])
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
@@ -172,8 +177,9 @@ def train(demo_paths: list[str], out_dir: str, model_cfg: VLAConfig | None = Non
         if images.dim() == 4:  # sets recorded before recipes named their cameras: agentview alone
             images = images[:, None]
         if images.shape[1] != len(model_cfg.cameras):
-            raise ValueError(f"the demos hold {images.shape[1]} camera image(s) per frame, the model reads "
-                             f"{list(model_cfg.cameras)}: collect them with the same cameras")
+            raise ValueError(f"the demos hold {images.shape[1]} camera image(s) per frame, the model"
+                             f"{' of ' + init if init else ''} reads {list(model_cfg.cameras)}: collect them "
+                             f"with the same cameras (--cameras {','.join(model_cfg.cameras)})")
         #: Samples are the transitions that have a frame (every ``image_every`` steps).
         sample_steps = torch.from_numpy(demos["image_steps"])
     else:
@@ -440,7 +446,8 @@ def main(argv=None) -> int:
     p.add_argument("--image-size", type=int, default=64)
     p.add_argument("--cameras", type=parse_cameras, default=",".join(IMAGE_INPUTS),
                    help=f"image variant: the camera tensors it reads, comma-separated ({', '.join(CAMERA_INPUTS)})")
-    p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data)")
+    p.add_argument("--init", default="", help="checkpoint to fine-tune from (with --data); its image size and "
+                   "cameras are kept, whatever --image-size and --cameras say")
     p.add_argument("--lr", type=float, default=PipelineConfig.lr)
     p.add_argument("--threads", type=int, default=TrainConfig.threads,
                    help="torch intra-op threads for training (1 leaves cores to the env processes)")
