@@ -271,12 +271,11 @@ def test_the_evolver_service_admits_critic_code_an_llm_wrote(evo_stack: Endpoint
     with ZETTA_EVOLVER_LLM_URL runs to SUCCEEDED, and its store holds the admitted LLM-written critic."""
     import subprocess
     import sys
-    import time
 
     import grpc
 
     from services.ops.local_stack import free_port, wait_healthy
-    from tests.integration.test_evolver_service import service_env
+    from tests.integration.test_evolver_service import service_env, wait_job
     from zetta_wire.v1 import evolver_pb2, evolver_pb2_grpc
 
     server = HTTPServer(("127.0.0.1", 0), _LLM)
@@ -300,12 +299,7 @@ def test_the_evolver_service_admits_critic_code_an_llm_wrote(evo_stack: Endpoint
         with grpc.insecure_channel(f"127.0.0.1:{port}") as ch:
             stub = evolver_pb2_grpc.EvolverServiceStub(ch)
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="llm", spec=spec), timeout=30)
-            deadline = time.monotonic() + 1500
-            while time.monotonic() < deadline:
-                status = stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id="llm"), timeout=30).status
-                if status.state not in (evolver_pb2.EVOLUTION_STATE_PENDING, evolver_pb2.EVOLUTION_STATE_RUNNING):
-                    break
-                time.sleep(2.0)
+            status = wait_job(stub, "llm", 1500)
         assert status.state == evolver_pb2.EVOLUTION_STATE_SUCCEEDED, status.error
     finally:
         if proc.poll() is None:

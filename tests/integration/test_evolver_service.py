@@ -71,6 +71,18 @@ def evolver(evo_stack: Endpoints, tmp_path: Path) -> Iterator[tuple[str, int, su
         log.close()
 
 
+def wait_job(stub: evolver_pb2_grpc.EvolverServiceStub, job_id: str, seconds: float) -> evolver_pb2.EvolutionStatus:
+    """The job's status once it has left pending and running, or the last one seen after ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while True:
+        status = stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id=job_id), timeout=30).status
+        if status.state not in (evolver_pb2.EVOLUTION_STATE_PENDING, evolver_pb2.EVOLUTION_STATE_RUNNING):
+            return status
+        if time.monotonic() > deadline:
+            return status
+        time.sleep(1.0)
+
+
 def spec(**kw: object) -> evolver_pb2.EvolutionSpec:
     base: dict[str, object] = dict(suite="libero_goal", tasks=[TASK], rounds=1, dev_seeds=2, heldout_seeds=1, test_seeds=1,
                                    model="scripted-pick-place", max_steps=30, max_clusters=1, max_candidates=1)
@@ -105,13 +117,7 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
         with pytest.raises(grpc.RpcError) as err:
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="j1", spec=spec()), timeout=10)
         assert err.value.code() in (grpc.StatusCode.ALREADY_EXISTS, grpc.StatusCode.RESOURCE_EXHAUSTED)
-        deadline = time.monotonic() + 400
-        status = started
-        while time.monotonic() < deadline:
-            status = stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id="j1"), timeout=30).status
-            if status.state not in (evolver_pb2.EVOLUTION_STATE_PENDING, evolver_pb2.EVOLUTION_STATE_RUNNING):
-                break
-            time.sleep(1.0)
+        status = wait_job(stub, "j1", 400)
         assert status.state == evolver_pb2.EVOLUTION_STATE_SUCCEEDED, status.error
         assert status.rollouts >= 4 and Path(status.report_path).exists()  # 2 dev + 1 test + its control at least
         arms = {s.arm for s in status.success}

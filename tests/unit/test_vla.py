@@ -439,3 +439,15 @@ def test_demos_on_another_libero_suite_name_their_tasks(tmp_path, capsys) -> Non
     assert exc.value.code == 2 and "--tasks is required on libero_90" in capsys.readouterr().err
     recipe = DataRecipe(suite="libero_90", tasks=[9, 27], seeds_per_task=2, seed_offset=1000)
     assert recipe.episodes() == [(9, 1000, 0), (27, 1000, 0), (9, 1001, 1), (27, 1001, 1)]
+
+
+def test_a_demo_process_that_dies_stops_the_collection_and_keeps_its_parts(tmp_path) -> None:
+    """A worker that dies (here: a teacher that does not exist; in practice the OOM killer) fails the
+    run with the command to continue, instead of assembling a set without its tasks."""
+    from services.policy_worker.vla.data import DataRecipe, collect
+
+    recipe = DataRecipe(tasks=[0], teacher="no-such-teacher", seeds_per_task=1, processes=1)
+    out = tmp_path / "d.npz"
+    with pytest.raises(RuntimeError, match="a demo process died .* rerun the same command to continue"):
+        collect(recipe, str(out), log=lambda *_: None)
+    assert not out.exists() and (tmp_path / "d.npz.parts" / "recipe.json").exists()

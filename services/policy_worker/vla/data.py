@@ -260,6 +260,11 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
                 try:
                     r = results.get(timeout=5)
                 except Exception:  # noqa: BLE001 - queue.Empty
+                    dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
+                    if dead:
+                        raise RuntimeError(
+                            f"a demo process died (exit code {dead[0].exitcode}) with {len(todo) - done} episodes "
+                            f"left; the finished ones stay in {shard_dir}: rerun the same command to continue")
                     if not any(p.is_alive() for p in procs):
                         break
                     continue
