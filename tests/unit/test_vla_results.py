@@ -100,3 +100,13 @@ def test_a_sampled_layout_row_is_not_the_benchmark_episode_of_its_seed(tmp_path)
     lines = [{**same, "seed": 51, "init_state_index": -1}, {**same, "seed": 52, "init_state_index": 2}]
     path.write_text("\n".join(json.dumps(x) for x in lines) + "\n")
     assert sorted(done_rows(str(path), "m", "s", 4, {})) == [(0, 51, -1), (0, 52, 2)]
+
+
+def test_sampled_layouts_are_never_published(tmp_path, capsys) -> None:
+    """A results page reports benchmark init states: eval-policy refuses to publish sampled layouts."""
+    from services.policy_worker.vla.evaluate import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--sampled-layouts", "--results", str(tmp_path / "vla.json"), "--out", str(tmp_path / "e.jsonl")])
+    assert exc.value.code == 2 and "publish nothing" in capsys.readouterr().err
+    assert not (tmp_path / "e.jsonl").exists()

@@ -77,13 +77,13 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
     Rows already in ``out_path`` for this model, suite, execute_steps, env and init state count as
     done, so an evaluation that was cut off continues where it stopped. Raises when a worker
     process dies with episodes left (killed for memory, say), instead of moving on with a partial suite."""
+    from services.env_worker.families import SAMPLED_LAYOUT
+
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     # Each process runs its own share of the tasks: a family keeps a warm env (with its renderer,
     # about 0.5 GB) per task it has run, so every process running every task costs ~5 GB each.
     queues = [ctx.Queue() for _ in range(processes)]
-    from services.env_worker.families import SAMPLED_LAYOUT
-
     episodes = [(t, s, SAMPLED_LAYOUT if sampled else s % 50) for s in seeds for t in tasks]
     done = done_rows(out_path, model, suite, execute_steps, env or {})
     rows = [done[e] for e in episodes if e in done]
@@ -191,6 +191,9 @@ def main(argv=None) -> int:
     p.add_argument("--results", default="", help="also write the results file (e.g. docs/results/vla.json) "
                    "and its page (docs/results/vla.md); VLA models only")
     a = p.parse_args(argv)
+    if a.results and a.sampled_layouts:
+        p.error("--results publishes the benchmark's init states; --sampled-layouts is for comparisons that "
+                "publish nothing")
     if a.report:
         print(table([json.loads(line) for line in Path(a.report).read_text().splitlines() if line.strip()]))
         return 0
