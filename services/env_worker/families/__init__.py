@@ -29,6 +29,13 @@ def libero_instruction(suite_name: str, task: str) -> str | None:
 
     return lookup(suite_name, task)
 
+
+def is_libero_pro_variant(suite_name: str) -> bool:
+    """Whether a LIBERO suite name is one of LIBERO-PRO's perturbations (``libero_goal_swap``, ...)."""
+    from services.env_worker.families.libero import LIBERO_PRO_VARIANTS
+
+    return suite_name.endswith(tuple(f"_{v}" for v in LIBERO_PRO_VARIANTS))
+
 __all__ = [
     "ConfigError",
     "EnvFamily",
@@ -43,6 +50,7 @@ __all__ = [
     "canonical_config_key",
     "family_names",
     "get_family",
+    "is_libero_pro_variant",
     "libero_instruction",
     "register_family",
     "select_gl_backend",

@@ -93,9 +93,9 @@ class DataRecipe:
 def check_training_suite(suite: str) -> None:
     """Refuse a LIBERO-PRO variant: its layouts and instructions are the evaluation's, and a
     policy that has seen them says nothing about generalising to them."""
-    from services.env_worker.families.libero import LIBERO_PRO_VARIANTS
+    from services.env_worker.families import is_libero_pro_variant
 
-    if suite.endswith(tuple(f"_{v}" for v in LIBERO_PRO_VARIANTS)):
+    if is_libero_pro_variant(suite):
         raise ValueError(f"suite {suite!r} is a LIBERO-PRO variant, which the policy is evaluated on; "
                          "train on a LIBERO suite such as libero_goal or libero_90")
 
