@@ -17,14 +17,6 @@ from typing import Any
 from services.evolver.store import Rollout, RolloutStore
 from zetta_wire.stats import wilson
 
-#: The intervention outcome of a recovery still in control at success (services/harness/runtime/engine.py).
-IN_CONTROL_AT_SUCCESS = "in_control_at_success"
-
-
-def policy_in_control_at_success(interventions: Sequence[Mapping[str, Any]]) -> bool:
-    """Whether the policy, not a recovery, was in control when the episode succeeded."""
-    return not any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in interventions)
-
 
 def redirected_actions(interventions: Sequence[Mapping[str, Any]]) -> int:
     """Actions the policy took under a redirected instruction (interventions that record one)."""
@@ -38,9 +30,8 @@ def arm(store: RolloutStore, rollouts: Sequence[Rollout]) -> dict[str, Any]:
     wins = [r for r in rollouts if r.success]
     lo, hi = wilson(len(wins), n)
     actions = sum(r.policy_steps + r.recovery_steps for r in wins)
-    recorded = [store.trace(r).interventions for r in wins if r.interventions]
-    in_control = sum(policy_in_control_at_success(ivs) for ivs in recorded) + len(wins) - len(recorded)
-    redirected = sum(redirected_actions(ivs) for ivs in recorded)
+    in_control = sum(not r.in_control_at_success for r in wins)
+    redirected = sum(redirected_actions(store.trace(r).interventions) for r in wins if r.interventions)
     return {
         "successes": len(wins), "episodes": n, "rate": len(wins) / n if n else 0.0, "wilson95": [lo, hi],
         "seeds": sorted(r.seed for r in rollouts),

@@ -7,6 +7,10 @@ most ``max_control`` of the task's dev seeds (a harness that solves the task by 
 correction of the policy), and (3) its held-out (gate) success is strictly higher than the current
 harness's on the same seeds. Anything else goes to the buffer of rejected candidates (the store's
 ``rejected`` table) and is never evaluated again. Test seeds never reach this module.
+
+Regression and held-out count only credited successes (``Rollout.credited``): a success with an
+intervention still in control never handed back to the policy. The do-nothing control counts
+every success: there, any success is the harness solving the task by itself.
 """
 
 from __future__ import annotations
@@ -63,13 +67,18 @@ def _rate(x: tuple[int, int]) -> float:
 
 
 def count(rollouts: Sequence[Rollout]) -> tuple[int, int]:
-    """(successes, episodes)."""
+    """(successes, episodes), every success counted."""
     return sum(r.success for r in rollouts), len(rollouts)
+
+
+def credited(rollouts: Sequence[Rollout]) -> tuple[int, int]:
+    """(credited successes, episodes): successes with the policy in control at the success step."""
+    return sum(r.credited for r in rollouts), len(rollouts)
 
 
 def regression_gate(regression: Sequence[Rollout], params: GateParams = GateParams()) -> str | None:
     """Why the candidate fails historical regression, or None when it passes."""
-    s, n = count(regression)
+    s, n = credited(regression)
     if n < params.min_cluster:
         return f"historical regression on {n} seed(s): it needs clusters of at least {params.min_cluster}"
     if s / n < params.regression_min:
@@ -94,7 +103,8 @@ def judge(regression: Sequence[Rollout], heldout: Sequence[Rollout], current: Se
     seeds = sorted(r.seed for r in heldout)
     if seeds != sorted(r.seed for r in current) or seeds != sorted(r.seed for r in bare):
         raise ValueError("held-out comparison on different seeds: candidate, current and bare must share them")
-    reg, held, cur, base, ctl = count(regression), count(heldout), count(current), count(bare), count(control)
+    reg, held, cur, base = credited(regression), credited(heldout), credited(current), credited(bare)
+    ctl = count(control)
     why = regression_gate(regression, params) or control_gate(control, params)
     if why is not None:
         return Verdict(False, why, reg, held, cur, base, ctl)

@@ -92,8 +92,8 @@ class Profile:
 
     @property
     def successes(self) -> int:
-        """Successful rollouts."""
-        return sum(r.success for r in self.rollouts)
+        """Credited successful rollouts (no intervention still in control at the success step)."""
+        return sum(r.credited for r in self.rollouts)
 
     def manifest(self) -> dict[str, Any]:
         """The failed-seed manifest with m* per failure."""
@@ -104,6 +104,6 @@ class Profile:
 
 def build_profile(store: RolloutStore, rollouts: Sequence[Rollout], suite: str, task: str, harness: str) -> Profile:
     """I_succ and M_fail from valid rollouts already in the store."""
-    succ = [store.trace(r) for r in rollouts if r.success]
+    succ = [store.trace(r) for r in rollouts if r.credited]
     failures = [Failure(r, r.first_missing or "<none>") for r in rollouts if not r.success]
     return Profile(suite, task, harness, list(rollouts), SuccessIndex.build(succ), failures)

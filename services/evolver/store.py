@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from services.evolver.trace import Trace
+from services.evolver.trace import Trace, in_control_at_success
 
 DEV = "dev"
 #: The gate's admission seeds (the paper's held-out set of Phase III).
@@ -43,7 +43,8 @@ CREATE TABLE IF NOT EXISTS rollouts (
   round INTEGER NOT NULL, success INTEGER NOT NULL, steps INTEGER NOT NULL,
   first_missing TEXT NOT NULL, milestones_reached TEXT NOT NULL, policy_steps INTEGER NOT NULL,
   recovery_steps INTEGER NOT NULL, interventions INTEGER NOT NULL, trace_path TEXT NOT NULL,
-  video_path TEXT NOT NULL, wall_s REAL NOT NULL, created_at REAL NOT NULL);
+  video_path TEXT NOT NULL, wall_s REAL NOT NULL, created_at REAL NOT NULL,
+  in_control_at_success INTEGER NOT NULL DEFAULT 0);
 CREATE INDEX IF NOT EXISTS rollouts_q ON rollouts (suite, task, harness, split, success);
 CREATE TABLE IF NOT EXISTS invalid (
   id INTEGER PRIMARY KEY AUTOINCREMENT, key TEXT NOT NULL, reason TEXT NOT NULL, created_at REAL NOT NULL);
@@ -59,6 +60,11 @@ CREATE TABLE IF NOT EXISTS events (
   id INTEGER PRIMARY KEY AUTOINCREMENT, kind TEXT NOT NULL, ident TEXT NOT NULL, body TEXT NOT NULL,
   created_at REAL NOT NULL);
 """
+
+#: Column order of an insert (a migrated store has its columns in another order than a new one).
+_ROLLOUT_COLUMNS = ("key, suite, task, seed, init_state, split, harness, purpose, round, success, steps, "
+                    "first_missing, milestones_reached, policy_steps, recovery_steps, interventions, trace_path, "
+                    "video_path, wall_s, created_at, in_control_at_success")
 
 
 class StoreError(RuntimeError):
@@ -110,6 +116,14 @@ class Rollout:
     trace_path: str
     video_path: str
     wall_s: float
+    #: An intervention was still in control at the success step (trace.in_control_at_success).
+    in_control_at_success: bool = False
+
+    @property
+    def credited(self) -> bool:
+        """A success the evolver's decisions count: the policy, not an intervention that never
+        handed back, was in control when the task was done (the re-entry contract)."""
+        return self.success and not self.in_control_at_success
 
 
 @dataclass(frozen=True)
@@ -139,6 +153,18 @@ class RolloutStore:
         cols = {r[1] for r in self._db.execute("PRAGMA table_info(events)")}
         if "ident" not in cols:  # stores written before events had idents
             self._db.execute("ALTER TABLE events ADD COLUMN ident TEXT NOT NULL DEFAULT ''")
+        if "in_control_at_success" not in {r[1] for r in self._db.execute("PRAGMA table_info(rollouts)")}:
+            self._add_in_control_column()
+
+    def _add_in_control_column(self) -> None:
+        """Stores written before the column: add it, filled from the traces of successes that had
+        interventions (a trace that is not there, as in a published index, leaves 0)."""
+        self._db.execute("ALTER TABLE rollouts ADD COLUMN in_control_at_success INTEGER NOT NULL DEFAULT 0")
+        rows = self._db.execute("SELECT key, trace_path FROM rollouts WHERE success = 1 AND interventions > 0")
+        for key, trace_path in rows.fetchall():
+            path = self.root / trace_path
+            if path.exists() and in_control_at_success(Trace.from_bytes(path.read_bytes()).interventions):
+                self._db.execute("UPDATE rollouts SET in_control_at_success = 1 WHERE key = ?", (key,))
 
     def close(self) -> None:
         """Close the index."""
@@ -275,10 +301,10 @@ class RolloutStore:
                int(outcome.success), outcome.steps, outcome.first_missing, json.dumps(list(outcome.milestones_reached)),
                outcome.steps - outcome.trace.recovery_steps, outcome.trace.recovery_steps,
                len(outcome.trace.interventions), str(trace_path.relative_to(self.root)), video, outcome.wall_s,
-               time.time())
+               time.time(), int(outcome.success and in_control_at_success(outcome.trace.interventions)))
         with self._lock:
             try:
-                self._db.execute(f"INSERT INTO rollouts VALUES ({','.join('?' * len(row))})", row)
+                self._db.execute(f"INSERT INTO rollouts ({_ROLLOUT_COLUMNS}) VALUES ({','.join('?' * len(row))})", row)
             except sqlite3.IntegrityError:
                 raise StoreError(f"{key}: a rollout is already filed under this key (the store is append-only)") from None
         rollout = self.get(key)
@@ -321,6 +347,7 @@ class RolloutStore:
             d = dict(zip(cols, r))
             d.pop("created_at")
             d["success"] = bool(d["success"])
+            d["in_control_at_success"] = bool(d["in_control_at_success"])
             d["milestones_reached"] = json.loads(d["milestones_reached"])
             out.append(Rollout(**d))
         return out

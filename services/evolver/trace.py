@@ -26,6 +26,17 @@ import numpy as np
 IMAGE_SUFFIX = "_image"
 #: Width of :func:`relative_state`.
 STATE_DIM = 9
+#: The outcome the harness runtime records for an intervention still in control when the episode
+#: succeeded (services/harness/runtime/engine.py): it never handed back to the policy.
+IN_CONTROL_AT_SUCCESS = "in_control_at_success"
+
+
+def in_control_at_success(interventions: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether an intervention, not the policy under the episode's instruction, was in control at
+    the success step. The re-entry contract says an intervention ends by handing back; one still
+    in control at success finished the task itself, so no decision of the evolver credits the
+    success (a redirection counts too: the policy then worked under another instruction)."""
+    return any(str(iv.get("outcome", "")) == IN_CONTROL_AT_SUCCESS for iv in interventions)
 
 
 @dataclass
