@@ -10,11 +10,13 @@ from services.evolver.store import Rollout
 
 
 def runs(outcomes: str, harness: str = "h@1", first_seed: int = 1) -> list[Rollout]:
-    """Rollouts on consecutive seeds; '1' success, '0' failure."""
+    """Rollouts on consecutive seeds; '1' success, '0' failure, 'c' a success with an intervention
+    still in control at the success step."""
     return [Rollout(key=f"g/6/{first_seed + i}/{harness}/heldout", suite="g", task="6", seed=first_seed + i,
                     init_state=(first_seed + i) % 50, split="heldout", harness=harness, purpose="heldout", round=1,
-                    success=c == "1", steps=100, first_missing="", milestones_reached=[], policy_steps=100,
-                    recovery_steps=0, interventions=0, trace_path="", video_path="", wall_s=1.0)
+                    success=c in "1c", steps=100, first_missing="", milestones_reached=[], policy_steps=100,
+                    recovery_steps=0, interventions=int(c == "c"), trace_path="", video_path="", wall_s=1.0,
+                    in_control_at_success=c == "c")
             for i, c in enumerate(outcomes)]
 
 
@@ -60,3 +62,16 @@ def test_heldout_comparison_must_share_seeds() -> None:
     """Comparing success on different held-out seeds is refused outright."""
     with pytest.raises(ValueError, match="different seeds"):
         judge(runs("111"), runs("11"), runs("11", "cur", first_seed=5), runs("11", ""), NOTHING)
+
+
+def test_a_success_an_intervention_finished_is_not_credited() -> None:
+    """A success with an intervention still in control never handed back: it does not count in the
+    historical regression nor in the held-out comparison, but the do-nothing control counts it."""
+    v = judge(runs("11c"), runs("1111"), runs("0000", "cur"), runs("0000", ""), NOTHING)
+    assert not v.admitted and "historical regression 2/3" in v.reason
+    v = judge(runs("111"), runs("cc10"), runs("1000", "cur"), runs("0000", ""), NOTHING)
+    assert not v.admitted and "held-out 1/4 is not a strict improvement" in v.reason
+    v = judge(runs("111"), runs("11c0"), runs("1000", "cur"), runs("0000", ""), NOTHING)
+    assert v.admitted and v.heldout == (2, 4)
+    v = judge(runs("111"), runs("1111"), runs("0000", "cur"), runs("0000", ""), runs("cc" + "0" * 18, "h@1/control"))
+    assert not v.admitted and "do-nothing policy succeeds on 2/20 dev seeds" in v.reason

@@ -3,6 +3,7 @@ and what the runtime gets (budgets, clearing condition, a window long enough for
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from services.harness.package.loader import load_files
@@ -18,7 +19,7 @@ from services.evolver.profile import SuccessIndex
 from services.evolver.repair import Candidate, ReplayCase, SearchParams, plan_of, search
 from services.evolver.replay import first_fire, resume_frame
 from services.evolver.rollout import RunConfig
-from services.evolver.store import EpisodeKey, RolloutStore
+from services.evolver.store import EpisodeKey, Outcome, RolloutStore
 from tests.unit.test_evolver_fixtures import make_trace
 from tests.unit.test_evolver_store import outcome
 
@@ -170,3 +171,48 @@ def test_a_plan_layer_prefers_motion_detectors_but_searches_all() -> None:
     names = _templates_for(spec, PARENT, PREDICATES)
     assert names[:2] == ["blocked_motion", "stalled_progress"] and "non_approach" in names
     assert not {"grasp_retained", "supported_placement"} & set(names)
+
+
+def _finished_by_recovery(seed: int) -> Outcome:
+    """A success whose trace says an intervention was still in control at the success step."""
+    won = outcome("success", seed)
+    held = {"id": "iv1", "recovery": "fine_alignment", "evidence": "blocked_motion", "start_step": 30,
+            "end_step": 48, "outcome": "in_control_at_success", "actions": 18}
+    return dataclasses.replace(won, trace=dataclasses.replace(won.trace, interventions=[held]))
+
+
+class _Registry:
+    """Names published drafts as the critic service does (name@version); validation only publishes."""
+
+    def __init__(self) -> None:
+        self.versions: dict[str, int] = {}
+
+    def publish(self, draft: HarnessDraft, **_: object) -> str:
+        self.versions[draft.name] = self.versions.get(draft.name, 0) + 1
+        return f"{draft.name}@{self.versions[draft.name]}"
+
+
+def test_a_medoid_success_a_recovery_finished_neither_validates_nor_steps(tmp_path: Path) -> None:
+    """Validation credits a medoid success only when the policy was in control at the success step:
+    a candidate whose recovery finished the task is rejected, and is no stepping stone either; the
+    next candidate, which handed back, is the validated one. I_succ leaves such a success out."""
+    store = RolloutStore(tmp_path)
+    dev, _ = store.assign_splits("g", "9", dev=3, heldout=1)
+    evo = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
+    grasp = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 3}, "grasp_lost", "regrasp"),
+                      plan_of("regrasp"), 40, 1.0, 0.0, 1)
+    approach = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "acquire"),
+                         plan_of("acquire"), 40, 1.0, 0.0, 1)
+    # What the two candidates' fresh rollouts of the medoid were (filed: validation reads them back).
+    store.add(EpisodeKey("g", "9", dev[0], f"{PARENT.name}-candidate@1", "validate"), _finished_by_recovery(1))
+    store.add(EpisodeKey("g", "9", dev[0], f"{PARENT.name}-candidate@2", "validate"), outcome("success", 2))
+    v = evo.validate("9", 1, "9/r1/K1", PARENT, [grasp, approach], dev[0], 1)
+    assert v.found == approach and v.ref == f"{PARENT.name}-candidate@2"
+    assert store.is_rejected(grasp.apply(PARENT).fingerprint())
+    first = store.events("validation")[0]
+    assert first["medoid_success"] and first["in_control_at_success"]
+    alone = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
+    v = alone.validate("9", 1, "9/r1/K2", PARENT, [grasp], dev[0], 1)
+    assert v.found is None and v.step is None
+    profile = [store.add(EpisodeKey("g", "9", s, "", "profile"), outcome("miss", s)) for s in dev]
+    assert evo._reference_index("9", profile).rollouts == 1  # the candidate@2 success only

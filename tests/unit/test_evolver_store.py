@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +147,28 @@ def test_test_seeds_take_layouts_the_policy_never_trained_on(tmp_path) -> None:
     # More test seeds than unseen layouts: the rest come from the others, still disjoint.
     s.assign_splits("libero_goal_swap", "4", dev=0, heldout=0, test=25, trained=range(30))
     assert len({t % 50 for t in s.seeds("libero_goal_swap", "4", "test")}) == 25
+
+
+def test_a_success_an_intervention_finished_is_flagged_and_not_credited(tmp_path: Path) -> None:
+    """The store flags a success whose trace has an intervention still in control at the success
+    step; such a rollout is a success but not a credited one. A store written before the flag had
+    a column gets it when opened, filled from its traces."""
+    s = RolloutStore(tmp_path)
+    s.assign_splits("g", "6", dev=3, heldout=1)
+    held = {"id": "iv1", "recovery": "fine_alignment", "outcome": "in_control_at_success", "actions": 9}
+    handed = {"id": "iv1", "recovery": "regrasp", "outcome": "done", "actions": 9}
+    finished = dataclasses.replace(outcome("success"), trace=dataclasses.replace(make_trace("success"),
+                                                                                 interventions=[held]))
+    cleared = dataclasses.replace(outcome("success"), trace=dataclasses.replace(make_trace("success"),
+                                                                                interventions=[handed]))
+    a = s.add(EpisodeKey("g", "6", 2, "h@1", "profile"), finished)
+    b = s.add(EpisodeKey("g", "6", 3, "h@1", "profile"), cleared)
+    assert a.success and a.in_control_at_success and not a.credited
+    assert b.success and not b.in_control_at_success and b.credited
+    s.close()
+    db = sqlite3.connect(tmp_path / "index.sqlite")
+    db.execute("ALTER TABLE rollouts DROP COLUMN in_control_at_success")
+    db.commit()
+    db.close()
+    again = RolloutStore(tmp_path)
+    assert [r.in_control_at_success for r in again.query(harness="h@1")] == [True, False]
