@@ -61,11 +61,18 @@ def _candidates(validations: Sequence[dict[str, Any]], merges: Sequence[dict[str
             refused["no registry"] += len(v.get("candidates", []))
         elif not v.get("medoid_success"):
             refused["validation"] += 1
+        elif v.get("in_control_at_success"):
+            refused["no hand-back"] += 1
     refused["consolidation"] += sum(not m.get("joined") for m in merges)
     if gate is not None and not gate["admitted"]:
         refused[gate["refusal"]] += 1
     return {"run": sum(len(v.get("candidates", [])) if "skipped" in v else 1 for v in validations),
-            "validated": sum(bool(v.get("medoid_success")) for v in validations), "refused": dict(+refused)}
+            "validated": sum(_validated(v) for v in validations), "refused": dict(+refused)}
+
+
+def _validated(v: Mapping[str, Any]) -> bool:
+    """A candidate's medoid rollout succeeded with the policy in control at the success step."""
+    return bool(v.get("medoid_success")) and not v.get("in_control_at_success")
 
 
 def _curve_state(curves: Sequence[dict[str, Any]]) -> tuple[int, int]:

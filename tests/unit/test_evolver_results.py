@@ -43,6 +43,8 @@ def _round_one(store: RolloutStore) -> None:
                                                     "validated": True}]}, ident="6/r1/K1")
     for ref, ok in (("c@1", False), ("c@2", True), ("c@3", False)):
         store.record("validation", {"cluster": "6/r1/K1", "ref": ref, "medoid_success": ok}, ident=f"6/r1/K1/{ref}")
+    store.record("validation", {"cluster": "6/r1/K1", "ref": "c@4", "medoid_success": True,
+                                "in_control_at_success": True}, ident="6/r1/K1/c@4")  # its recovery finished it
     store.record("validation", {"cluster": "9/r1/K1", "ref": "x@1", "medoid_success": True})  # another task's
     store.record("consolidation", {"suite": SUITE, "task": "6", "round": 1, "cluster": "6/r1/K2", "joined": False,
                                    "reason": "historical regression 3/4 below 100%"})
@@ -144,12 +146,13 @@ def test_history_per_task_and_round_from_the_recorded_events(tmp_path: Path) -> 
     data = experiment(tmp_path)
     first, second = data["suites"][SUITE]["history"]
     assert (first["round"], first["profile"], first["clusters"], first["repaired"], first["solved"]) == (1, [1, 4], 2, 1, 1)
-    assert first["candidates"] == {"run": 3, "validated": 1, "refused": {"validation": 2, "consolidation": 1}}
+    assert first["candidates"] == {"run": 4, "validated": 1,
+                                   "refused": {"validation": 2, "no hand-back": 1, "consolidation": 1}}
     assert first["gate"]["control"] == [0, 4] and first["gate"]["heldout"] == [3, 3] and first["admitted"] == "e-6@1"
     assert second["gate"]["refusal"] == "held-out" and second["candidates"]["refused"] == {"held-out": 1}
     text = results.render(data)
-    assert ("| libero_goal_task | 6 | 1 | bare | 1/4 | 2 | 1 / 1 | 3 run: 1 validated; refused: consolidation 1, "
-            "validation 2 | regression 3/3, control (dev) 0/4, held-out 3/3 vs current 1/3 (bare 1/3): admitted | "
+    assert ("| libero_goal_task | 6 | 1 | bare | 1/4 | 2 | 1 / 1 | 4 run: 1 validated; refused: consolidation 1, "
+            "no hand-back 1, validation 2 | regression 3/3, control (dev) 0/4, held-out 3/3 vs current 1/3 (bare 1/3): admitted | "
             "e-6@1 | 100 (20 / 50 / 30) |") in text
     assert (first["small"], second["small"]) == (0, 2)
     assert "| libero_goal_task | 6 | 2 | e-6@1 | 3/5 | 0 (+2 small) | 0 / 0 |" in text
