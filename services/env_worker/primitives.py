@@ -20,15 +20,17 @@ from services.common.rotations import quat_to_mat, rotvec
 from services.env_worker.chunks import ChunkRun, run_chunk, step_result
 from services.env_worker.slots import BoundSlot
 from services.harness.runtime.library import tools
-from services.harness.runtime.perception import Detection, Perception, episode_seed
+from services.harness.runtime.perception import DEFAULT_NOISE, Detection, NoiseModel, Perception, episode_seed
 from zetta_wire.v1 import types_pb2
 
 
 
-def episode_perception(obs: dict[str, np.ndarray] | object, instruction: str) -> Perception:
-    """The episode's detector, seeded from its reset state and instruction as the harness's is:
-    the same episode perceives with the same bias."""
-    return Perception(episode_seed(obs, instruction))  # type: ignore[arg-type]
+def episode_perception(obs: dict[str, np.ndarray] | object, instruction: str,
+                       noise: NoiseModel | None = None) -> Perception:
+    """The episode's detector, seeded from its reset state and instruction as the harness's is,
+    with the noise model of the session's harness package when it has one (its ``[perception]``):
+    the same episode perceives with the same bias and noise for a client as for its harness."""
+    return Perception(episode_seed(obs, instruction), noise or DEFAULT_NOISE)  # type: ignore[arg-type]
 
 
 def _detection(query: str, d: Detection, grasps: bool) -> types_pb2.Detection:

@@ -183,7 +183,8 @@ class EnvWorkerServicer(env_worker_pb2_grpc.EnvWorkerServiceServicer):
             max_steps=slot.family.max_episode_steps(spec.task),
             record_steps=spec.record_steps,
         )
-        episode.perception = primitives.episode_perception(obs, episode.instruction)
+        episode.perception = primitives.episode_perception(
+            obs, episode.instruction, harness.runtime.noise if harness is not None else None)
         slot.episode = episode
         slot.last_obs = obs
         metrics.RESETS.labels(slot.family_name).inc()

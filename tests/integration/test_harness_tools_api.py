@@ -109,3 +109,23 @@ async def test_bad_tool_requests_are_refused_by_name(gw) -> None:
     assert err.value.code == grpc.StatusCode.INVALID_ARGUMENT and "one per session" in err.value.details
     # Nothing ran: the episode is where the reset left it.
     assert (await group.move(None, max_steps=1))[0].episode_step == 1
+
+
+async def test_perceive_uses_the_noise_model_of_the_sessions_harness(gw, tmp_path) -> None:
+    """A session whose episode runs a harness perceives with that package's ``[perception]`` model,
+    as the harness does: a package that assumes a 30 cm calibration bias reads its cube far off,
+    the same episode without a harness reads it within the default model's few centimetres."""
+    from tests.integration.test_harness_loop import SKILL, write_package
+
+    pkg = write_package(tmp_path / "pkg")
+    (pkg / "SKILL.md").write_text(SKILL.replace("[runtime]", "[perception]\nbias_m = 0.3\n\n[runtime]"))
+    errors = {}
+    for name, harness in (("harness", str(pkg)), ("none", "")):
+        group = await gw.create_sessions(env_family="robosuite", n=1, env_config=LIFT)
+        await group.reset(seed=7, harness_dir=harness)
+        truth = _centre((await group.observe())[0]["task_object_bbox"])
+        seen = [r.first("object") for _ in range(4) for r in await group.perceive()]
+        errors[name] = [float(np.linalg.norm(d.position - truth)) for d in seen if d is not None]
+        await group.close()
+    assert errors["none"] and max(errors["none"]) < 0.05, errors
+    assert errors["harness"] and min(errors["harness"]) > 0.1, errors
