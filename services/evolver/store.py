@@ -61,7 +61,7 @@ CREATE TABLE IF NOT EXISTS events (
   created_at REAL NOT NULL);
 """
 
-#: Column order of an insert (a migrated store has its columns in another order than a new one).
+#: The columns an insert names, so it never depends on the order a migration left them in.
 _ROLLOUT_COLUMNS = ("key, suite, task, seed, init_state, split, harness, purpose, round, success, steps, "
                     "first_missing, milestones_reached, policy_steps, recovery_steps, interventions, trace_path, "
                     "video_path, wall_s, created_at, in_control_at_success")
