@@ -78,6 +78,10 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="internal versions stacked per cluster until one solves every cluster seed")
     p.add_argument("--regression-min", type=float, default=1.0,
                    help="share of a cluster's seeds a candidate must solve (the paper: 1.0)")
+    p.add_argument("--require-hand-back", action="store_true",
+                   help="count a success only when the policy was in control at the success step: one an "
+                        "intervention finished (a placement recovery still in control) then validates no "
+                        "candidate and passes no regression or held-out gate")
     p.add_argument("--nominal-seeds", type=int, default=EvolveConfig.nominal_seeds,
                    help="bare-policy episodes per task on a LIBERO-PRO variant's original suite; a critic that "
                         "fires on their successes counts a false positive (0: none)")
@@ -93,7 +97,7 @@ def evolve_config(a: argparse.Namespace, suite: str, tasks: tuple[str, ...], nam
                         heldout_seeds=a.heldout_seeds, test_seeds=a.test_seeds, name=name,
                         max_clusters=a.max_clusters, eod=EODParams(epsilon=a.eod_epsilon),
                         cluster=ClusterParams(radius=a.cluster_radius, max_size=a.cluster_max_size),
-                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min),
+                        search=SearchParams(max_candidates=a.max_candidates), gate=GateParams(a.regression_min, require_hand_back=a.require_hand_back),
                         llm=llm_from_env(), max_depth=a.max_depth, nominal_seeds=a.nominal_seeds)
 
 

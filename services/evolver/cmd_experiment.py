@@ -125,7 +125,7 @@ def main(argv: Sequence[str]) -> int:
             "budgets": {"rounds": a.rounds, "dev_seeds": a.dev_seeds, "heldout_seeds": a.heldout_seeds,
                         "test_seeds": a.test_seeds, "transfer_seeds": a.transfer_seeds,
                         "execute_steps": a.execute_steps, "max_steps": a.max_steps,
-                        **{k: getattr(a, k) for k in ("max_clusters", "max_candidates", "max_depth", "regression_min",
+                        **{k: getattr(a, k) for k in ("max_clusters", "max_candidates", "max_depth", "regression_min", "require_hand_back",
                                                       "eod_epsilon", "cluster_radius", "cluster_max_size",
                                                       "nominal_seeds")}}}
     try:

@@ -26,7 +26,7 @@ from services.evolver.controls import arm
 from services.evolver.diagnose import REENTERED, Case, RepairSpec, repair_spec
 from services.evolver.draft import CriticDraft, HarnessDraft, PlanDraft
 from services.evolver.eod import EOD, EODParams, t_eod
-from services.evolver.gate import GateParams, count, credited, judge, regression_gate
+from services.evolver.gate import GateParams, count, judge, regression_gate
 from services.evolver.llm import LLMConfig, LLMError, propose
 from services.evolver.nominal import NominalPlan, summary
 from services.evolver.profile import SuccessIndex, build_profile
@@ -200,7 +200,7 @@ class Evolution:
         cur = self.state[task]
         dev = self.store.seeds(self.cfg.suite, task, DEV)
         rollouts = self._rollouts(self._keys(task, dev, cur.ref, "profile"), f"r{round_} {task} profile", round_)
-        prof = build_profile(self.store, rollouts, self.cfg.suite, task, cur.ref)
+        prof = build_profile(self.store, rollouts, self.cfg.suite, task, cur.ref, self.cfg.gate.require_hand_back)
         t_profile = time.time()
         self.store.record("profile", {"suite": self.cfg.suite, "task": task, "round": round_, "harness": cur.ref or "bare",
                                       "successes": prof.successes, "episodes": len(rollouts),
@@ -213,7 +213,7 @@ class Evolution:
             eods = [t_eod(tr, index, self.cfg.eod) for tr in traces]
             budget = max(r.steps for r in rollouts)
             clusters = cluster_failures(prof.failures, traces, eods, index, budget, self.cfg.cluster)
-            succ_traces = [self.store.trace(r) for r in rollouts if r.credited] + self.nominal_successes()
+            succ_traces = [self.store.trace(r) for r in rollouts if self.cfg.gate.won(r)] + self.nominal_successes()
             chosen, small = clusters_to_repair(clusters, self.cfg.max_clusters, self.cfg.gate.min_cluster)
             skipped = [cl.seeds for cl in small]
             for cl in chosen:
@@ -240,9 +240,10 @@ class Evolution:
         anywhere, distances are scaled by the spread of the ``failures`` themselves."""
         dev = set(self.store.seeds(self.cfg.suite, task, DEV))
         seen = {r.key for r in rollouts}
-        succ = [r for r in rollouts if r.credited]
+        won = self.cfg.gate.won
+        succ = [r for r in rollouts if won(r)]
         succ += [r for r in self.store.query(suite=self.cfg.suite, task=task, success=True)
-                 if r.credited and r.seed in dev and r.key not in seen and r.purpose not in ("heldout", "control")]
+                 if won(r) and r.seed in dev and r.key not in seen and r.purpose not in ("heldout", "control")]
         return SuccessIndex.build([self.store.trace(r) for r in succ], fallback=failures)
 
     def _repair_cluster(self, task: str, round_: int, cur: TaskState, cl: Cluster, traces: Sequence[Trace],
@@ -291,7 +292,7 @@ class Evolution:
             stack.append(pick)
             base, ref = pick.apply(base), v.ref
             reg = self._rollouts(self._keys(task, seeds, v.ref, "regress"), f"r{round_} {cluster} regress", round_)
-            regression = credited(reg)
+            regression = self.cfg.gate.successes(reg)
             best_before, best = best, max(best, regression[0])
             version = {"version": f"v{len(versions)}", "harness": v.ref, "successes": regression[0],
                        "episodes": regression[1], "medoid_milestones": v.progress, "seed": target,
@@ -299,7 +300,7 @@ class Evolution:
             versions.append(version)
             if v.found is not None:
                 validated = list(stack)
-                failing = {r.seed: r for r in reg if not r.credited}
+                failing = {r.seed: r for r in reg if not self.cfg.gate.won(r)}
                 if not failing:
                     break
                 if regression[0] > best_before:
@@ -408,10 +409,11 @@ class Evolution:
             self.store.record("validation", {"cluster": cluster, "candidate": cand.to_dict(), "ref": ref,
                                              "medoid_success": medoid.success, "medoid_milestones": reached,
                                              "in_control_at_success": medoid.in_control_at_success,
+                                             "validated": self.cfg.gate.won(medoid),
                                              "base_milestones": progress}, ident=f"{cluster}/{ref}")
-            if medoid.credited:
+            if self.cfg.gate.won(medoid):
                 return Validation(cand, None, ref, reached, medoid)
-            if medoid.in_control_at_success:
+            if medoid.success:
                 # The recovery finished the task and never handed back: no patch, no stepping stone.
                 self.store.reject(draft.fingerprint(), cluster, "the medoid succeeded with an intervention still in "
                                   "control: it never handed back to the policy")
@@ -446,7 +448,8 @@ class Evolution:
             why = regression_gate(trial_reg, self.cfg.gate)
             self.store.record("consolidation", {"suite": self.cfg.suite, "task": task, "round": round_,
                                                 "cluster": nxt.record["cluster"], "candidate": trial_ref,
-                                                "regression": list(credited(trial_reg)), "joined": why is None,
+                                                "regression": list(self.cfg.gate.successes(trial_reg)),
+                                                "joined": why is None,
                                                 "reason": why or ""}, ident=trial.fingerprint())
             if why is not None:
                 self.store.reject(trial.fingerprint(), f"{task}/r{round_}", why)
@@ -484,7 +487,7 @@ class Evolution:
         # Held-out failures of the admitted harness are what the next round repairs: they move to
         # dev (recorded) and fresh held-out seeds replace them.
         for r in held:
-            if not r.credited and round_ < self.cfg.rounds:
+            if not self.cfg.gate.won(r) and round_ < self.cfg.rounds:
                 self.store.move_to_dev(self.cfg.suite, task, r.seed,
                                        f"held-out failure of {admitted} (round {round_}) feeds round {round_ + 1}")
 

@@ -8,9 +8,11 @@ correction of the policy), and (3) its held-out (gate) success is strictly highe
 harness's on the same seeds. Anything else goes to the buffer of rejected candidates (the store's
 ``rejected`` table) and is never evaluated again. Test seeds never reach this module.
 
-Regression and held-out count only credited successes (``Rollout.credited``): a success with an
-intervention still in control never handed back to the policy. The do-nothing control counts
-every success: there, any success is the harness solving the task by itself.
+A success with an intervention still in control at the success step (a placement recovery that
+finished the task) counts as a success, as in the paper, and every results table reports how many
+there were. ``require_hand_back`` asks for more: regression and held-out then count only successes
+with the policy in control (``Rollout.credited``). The do-nothing control always counts every
+success: there, any success is the harness solving the task by itself.
 """
 
 from __future__ import annotations
@@ -32,6 +34,17 @@ class GateParams:
     min_cluster: int = 3
     #: Largest do-nothing success on the dev seeds a harness may have.
     max_control: float = 0.05
+    #: Count only successes with the policy in control at the success step (no intervention still
+    #: in control: it handed back before the task was done), in validation, regression and held-out.
+    require_hand_back: bool = False
+
+    def won(self, rollout: Rollout) -> bool:
+        """Whether a rollout counts as a success for the evolver's decisions."""
+        return rollout.credited if self.require_hand_back else rollout.success
+
+    def successes(self, rollouts: Sequence[Rollout]) -> tuple[int, int]:
+        """(successes the decisions count, episodes)."""
+        return sum(self.won(r) for r in rollouts), len(rollouts)
 
 
 @dataclass(frozen=True)
@@ -71,14 +84,9 @@ def count(rollouts: Sequence[Rollout]) -> tuple[int, int]:
     return sum(r.success for r in rollouts), len(rollouts)
 
 
-def credited(rollouts: Sequence[Rollout]) -> tuple[int, int]:
-    """(credited successes, episodes): successes with the policy in control at the success step."""
-    return sum(r.credited for r in rollouts), len(rollouts)
-
-
 def regression_gate(regression: Sequence[Rollout], params: GateParams = GateParams()) -> str | None:
     """Why the candidate fails historical regression, or None when it passes."""
-    s, n = credited(regression)
+    s, n = params.successes(regression)
     if n < params.min_cluster:
         return f"historical regression on {n} seed(s): it needs clusters of at least {params.min_cluster}"
     if s / n < params.regression_min:
@@ -103,7 +111,7 @@ def judge(regression: Sequence[Rollout], heldout: Sequence[Rollout], current: Se
     seeds = sorted(r.seed for r in heldout)
     if seeds != sorted(r.seed for r in current) or seeds != sorted(r.seed for r in bare):
         raise ValueError("held-out comparison on different seeds: candidate, current and bare must share them")
-    reg, held, cur, base = credited(regression), credited(heldout), credited(current), credited(bare)
+    reg, held, cur, base = (params.successes(x) for x in (regression, heldout, current, bare))
     ctl = count(control)
     why = regression_gate(regression, params) or control_gate(control, params)
     if why is not None:

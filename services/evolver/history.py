@@ -61,7 +61,7 @@ def _candidates(validations: Sequence[dict[str, Any]], merges: Sequence[dict[str
             refused["no registry"] += len(v.get("candidates", []))
         elif not v.get("medoid_success"):
             refused["validation"] += 1
-        elif v.get("in_control_at_success"):
+        elif not _validated(v):
             refused["no hand-back"] += 1
     refused["consolidation"] += sum(not m.get("joined") for m in merges)
     if gate is not None and not gate["admitted"]:
@@ -71,8 +71,10 @@ def _candidates(validations: Sequence[dict[str, Any]], merges: Sequence[dict[str
 
 
 def _validated(v: Mapping[str, Any]) -> bool:
-    """A candidate's medoid rollout succeeded with the policy in control at the success step."""
-    return bool(v.get("medoid_success")) and not v.get("in_control_at_success")
+    """A candidate's medoid rollout succeeded and the evolver counted it (a run that required a
+    hand-back did not count a success an intervention finished; records before that knob say
+    nothing, and every success of theirs counted)."""
+    return bool(v.get("validated", v.get("medoid_success")))
 
 
 def _curve_state(curves: Sequence[dict[str, Any]]) -> tuple[int, int]:

@@ -112,7 +112,8 @@ def check_spec(spec: dict[str, Any]) -> dict[str, Any]:
             "max_clusters": int(spec.get("max_clusters") or EvolveConfig.max_clusters),
             "max_candidates": int(spec.get("max_candidates") or SearchParams.max_candidates),
             "max_depth": int(spec.get("max_depth") or EvolveConfig.max_depth), "test_seeds": test,
-            "llm": bool(spec.get("llm", False)), "nominal_seeds": nominal}
+            "llm": bool(spec.get("llm", False)), "nominal_seeds": nominal,
+            "require_hand_back": bool(spec.get("require_hand_back", False))}
 
 
 class JobManager:
@@ -215,7 +216,7 @@ class JobManager:
             cfg = EvolveConfig(suite=spec["suite"], tasks=tuple(spec["tasks"]), rounds=spec["rounds"],
                                dev_seeds=spec["dev_seeds"], heldout_seeds=spec["heldout_seeds"], name=spec["name"],
                                max_clusters=spec["max_clusters"], search=SearchParams(max_candidates=spec["max_candidates"]),
-                               gate=GateParams(spec["regression_min"]), max_depth=spec["max_depth"],
+                               gate=GateParams(spec["regression_min"], require_hand_back=bool(spec.get("require_hand_back", False))), max_depth=spec["max_depth"],
                                test_seeds=int(spec.get("test_seeds") or EvolveConfig.test_seeds),
                                llm=_llm() if spec.get("llm") else None,
                                nominal_seeds=int(spec.get("nominal_seeds", EvolveConfig.nominal_seeds)),

@@ -89,11 +89,13 @@ class Profile:
     rollouts: list[Rollout]
     index: SuccessIndex
     failures: list[Failure]
+    #: Only successes with the policy in control at the success step count (GateParams.require_hand_back).
+    require_hand_back: bool = False
 
     @property
     def successes(self) -> int:
-        """Credited successful rollouts (no intervention still in control at the success step)."""
-        return sum(r.credited for r in self.rollouts)
+        """Successful rollouts (with ``require_hand_back``, only those the policy finished)."""
+        return sum(r.credited if self.require_hand_back else r.success for r in self.rollouts)
 
     def manifest(self) -> dict[str, Any]:
         """The failed-seed manifest with m* per failure."""
@@ -102,8 +104,10 @@ class Profile:
                 "failures": [f.to_dict() for f in self.failures]}
 
 
-def build_profile(store: RolloutStore, rollouts: Sequence[Rollout], suite: str, task: str, harness: str) -> Profile:
-    """I_succ and M_fail from valid rollouts already in the store."""
-    succ = [store.trace(r) for r in rollouts if r.credited]
+def build_profile(store: RolloutStore, rollouts: Sequence[Rollout], suite: str, task: str, harness: str,
+                  require_hand_back: bool = False) -> Profile:
+    """I_succ and M_fail from valid rollouts already in the store; with ``require_hand_back`` a
+    success an intervention finished is in neither."""
+    succ = [store.trace(r) for r in rollouts if (r.credited if require_hand_back else r.success)]
     failures = [Failure(r, r.first_missing or "<none>") for r in rollouts if not r.success]
-    return Profile(suite, task, harness, list(rollouts), SuccessIndex.build(succ), failures)
+    return Profile(suite, task, harness, list(rollouts), SuccessIndex.build(succ), failures, require_hand_back)

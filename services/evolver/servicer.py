@@ -26,7 +26,8 @@ def _spec_dict(spec: evolver_pb2.EvolutionSpec) -> dict[str, object]:
             "max_steps": spec.max_steps, "concurrency": spec.concurrency, "name": spec.name,
             "regression_min": spec.regression_min, "max_clusters": spec.max_clusters,
             "max_candidates": spec.max_candidates, "max_depth": spec.max_depth, "test_seeds": spec.test_seeds,
-            "llm": spec.llm, "nominal_seeds": spec.nominal_seeds if spec.HasField("nominal_seeds") else None}
+            "llm": spec.llm, "nominal_seeds": spec.nominal_seeds if spec.HasField("nominal_seeds") else None,
+            "require_hand_back": spec.require_hand_back}
 
 
 def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
@@ -42,7 +43,8 @@ def status_of(job: Job) -> evolver_pb2.EvolutionStatus:
             regression_min=float(s["regression_min"]), max_clusters=int(s["max_clusters"]),
             max_candidates=int(s["max_candidates"]), max_depth=int(s.get("max_depth", EvolveConfig.max_depth)),
             test_seeds=int(s.get("test_seeds", EvolveConfig.test_seeds)), llm=bool(s.get("llm", False)),
-            nominal_seeds=int(s.get("nominal_seeds", EvolveConfig.nominal_seeds))))
+            nominal_seeds=int(s.get("nominal_seeds", EvolveConfig.nominal_seeds)),
+            require_hand_back=bool(s.get("require_hand_back", False))))
     if (job.root / "store" / "index.sqlite").exists():
         store = RolloutStore(job.root / "store")
         try:

@@ -112,8 +112,9 @@ def test_job_runs_to_its_report_with_metrics(evolver: tuple[str, int, subprocess
         with pytest.raises(grpc.RpcError) as err:
             stub.GetEvolution(evolver_pb2.GetEvolutionRequest(job_id="nope"), timeout=10)
         assert err.value.code() == grpc.StatusCode.NOT_FOUND
-        started = stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="j1", spec=spec()), timeout=30).status
-        assert started.job_id == "j1" and started.spec.model == "scripted-pick-place"
+        started = stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="j1", spec=spec(require_hand_back=True)),
+                                      timeout=30).status
+        assert started.job_id == "j1" and started.spec.model == "scripted-pick-place" and started.spec.require_hand_back
         with pytest.raises(grpc.RpcError) as err:
             stub.StartEvolution(evolver_pb2.StartEvolutionRequest(job_id="j1", spec=spec()), timeout=10)
         assert err.value.code() in (grpc.StatusCode.ALREADY_EXISTS, grpc.StatusCode.RESOURCE_EXHAUSTED)

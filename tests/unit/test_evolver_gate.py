@@ -64,14 +64,37 @@ def test_heldout_comparison_must_share_seeds() -> None:
         judge(runs("111"), runs("11"), runs("11", "cur", first_seed=5), runs("11", ""), NOTHING)
 
 
-def test_a_success_an_intervention_finished_is_not_credited() -> None:
-    """A success with an intervention still in control never handed back: it does not count in the
-    historical regression nor in the held-out comparison, but the do-nothing control counts it."""
-    v = judge(runs("11c"), runs("1111"), runs("0000", "cur"), runs("0000", ""), NOTHING)
+def test_a_success_an_intervention_finished_counts_unless_a_hand_back_is_required() -> None:
+    """A success with an intervention still in control (a placement recovery that finished the task)
+    counts by default, as in the paper; with ``require_hand_back`` it counts in neither the historical
+    regression nor the held-out comparison. The do-nothing control counts it either way."""
+    strict = GateParams(require_hand_back=True)
+    assert judge(runs("11c"), runs("1111"), runs("0000", "cur"), runs("0000", ""), NOTHING).admitted
+    v = judge(runs("11c"), runs("1111"), runs("0000", "cur"), runs("0000", ""), NOTHING, strict)
     assert not v.admitted and "historical regression 2/3" in v.reason
-    v = judge(runs("111"), runs("cc10"), runs("1000", "cur"), runs("0000", ""), NOTHING)
+    assert judge(runs("111"), runs("cc10"), runs("1000", "cur"), runs("0000", ""), NOTHING).heldout == (3, 4)
+    v = judge(runs("111"), runs("cc10"), runs("1000", "cur"), runs("0000", ""), NOTHING, strict)
     assert not v.admitted and "held-out 1/4 is not a strict improvement" in v.reason
-    v = judge(runs("111"), runs("11c0"), runs("1000", "cur"), runs("0000", ""), NOTHING)
+    v = judge(runs("111"), runs("11c0"), runs("1000", "cur"), runs("0000", ""), NOTHING, strict)
     assert v.admitted and v.heldout == (2, 4)
-    v = judge(runs("111"), runs("1111"), runs("0000", "cur"), runs("0000", ""), runs("cc" + "0" * 18, "h@1/control"))
+    v = judge(runs("111"), runs("1111"), runs("0000", "cur"), runs("0000", ""), runs("cc" + "0" * 18, "h@1/control"),
+              strict)
     assert not v.admitted and "do-nothing policy succeeds on 2/20 dev seeds" in v.reason
+
+
+def test_an_evolver_job_and_the_cli_ask_for_a_hand_back_alike() -> None:
+    """EvolutionSpec.require_hand_back and --require-hand-back reach the gate's parameters; unset,
+    neither requires one."""
+    import argparse
+
+    from services.evolver.cmd_common import add_search_args, evolve_config
+    from services.evolver.jobs import check_spec
+
+    spec = {"suite": "libero_goal_task", "tasks": ["2"], "rounds": 1, "dev_seeds": 2, "heldout_seeds": 2}
+    assert check_spec(spec)["require_hand_back"] is False
+    assert check_spec({**spec, "require_hand_back": True})["require_hand_back"] is True
+    parser = argparse.ArgumentParser()
+    add_search_args(parser)
+    for argv, want in (([], False), (["--require-hand-back"], True)):
+        a = parser.parse_args(argv)
+        assert evolve_config(a, "libero_goal_task", ("2",), "e").gate.require_hand_back is want

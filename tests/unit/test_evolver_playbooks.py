@@ -192,13 +192,15 @@ class _Registry:
         return f"{draft.name}@{self.versions[draft.name]}"
 
 
-def test_a_medoid_success_a_recovery_finished_neither_validates_nor_steps(tmp_path: Path) -> None:
-    """Validation credits a medoid success only when the policy was in control at the success step:
-    a candidate whose recovery finished the task is rejected, and is no stepping stone either; the
-    next candidate, which handed back, is the validated one. I_succ leaves such a success out."""
+def test_a_medoid_success_a_recovery_finished_validates_only_without_require_hand_back(tmp_path: Path) -> None:
+    """By default a medoid success with the recovery still in control validates its candidate (the
+    paper's placement recoveries finish tasks). With ``require_hand_back`` that candidate is rejected,
+    and is no stepping stone either; the next one, which handed back, is the validated one; I_succ
+    leaves such a success out."""
     store = RolloutStore(tmp_path)
     dev, _ = store.assign_splits("g", "9", dev=3, heldout=1)
-    evo = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
+    strict = EvolveConfig("g", ("9",), gate=GateParams(require_hand_back=True))
+    evo = Evolution(strict, store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
     grasp = Candidate("c_grasp_lost", CriticDraft("grasp_lost", {"confirm": 3}, "grasp_lost", "regrasp"),
                       plan_of("regrasp"), 40, 1.0, 0.0, 1)
     approach = Candidate("c_non_approach", CriticDraft("non_approach", {}, "non_approach", "acquire"),
@@ -210,9 +212,13 @@ def test_a_medoid_success_a_recovery_finished_neither_validates_nor_steps(tmp_pa
     assert v.found == approach and v.ref == f"{PARENT.name}-candidate@2"
     assert store.is_rejected(grasp.apply(PARENT).fingerprint())
     first = store.events("validation")[0]
-    assert first["medoid_success"] and first["in_control_at_success"]
-    alone = Evolution(EvolveConfig("g", ("9",)), store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
+    assert first["medoid_success"] and first["in_control_at_success"] and not first["validated"]
+    alone = Evolution(strict, store, RunConfig(gateway="127.0.0.1:1"), _Registry())  # type: ignore[arg-type]
     v = alone.validate("9", 1, "9/r1/K2", PARENT, [grasp], dev[0], 1)
     assert v.found is None and v.step is None
     profile = [store.add(EpisodeKey("g", "9", s, "", "profile"), outcome("miss", s)) for s in dev]
     assert evo._reference_index("9", profile).rollouts == 1  # the candidate@2 success only
+    lenient = Evolution(EvolveConfig("g", ("9",)), RolloutStore(tmp_path), RunConfig(gateway="127.0.0.1:1"),
+                        _Registry())  # type: ignore[arg-type]
+    assert lenient.validate("9", 1, "9/r1/K3", PARENT, [grasp], dev[0], 1).found == grasp
+    assert lenient._reference_index("9", profile).rollouts == 2

@@ -44,7 +44,8 @@ def _round_one(store: RolloutStore) -> None:
     for ref, ok in (("c@1", False), ("c@2", True), ("c@3", False)):
         store.record("validation", {"cluster": "6/r1/K1", "ref": ref, "medoid_success": ok}, ident=f"6/r1/K1/{ref}")
     store.record("validation", {"cluster": "6/r1/K1", "ref": "c@4", "medoid_success": True,
-                                "in_control_at_success": True}, ident="6/r1/K1/c@4")  # its recovery finished it
+                                "in_control_at_success": True, "validated": False},
+                 ident="6/r1/K1/c@4")  # its recovery finished it, in a run that required a hand-back
     store.record("validation", {"cluster": "9/r1/K1", "ref": "x@1", "medoid_success": True})  # another task's
     store.record("consolidation", {"suite": SUITE, "task": "6", "round": 1, "cluster": "6/r1/K2", "joined": False,
                                    "reason": "historical regression 3/4 below 100%"})
