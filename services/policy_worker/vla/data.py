@@ -22,6 +22,7 @@ import numpy as np
 from services.common.policies import BENCHMARK_INITS, SAMPLED_LAYOUTS
 from services.common.progress import add_progress_option, progress
 from services.policy_worker.vla.features import IMAGE_INPUTS, STATE_INPUTS, image_env_config, parse_cameras, state_vector
+from services.policy_worker.vla.procs import still_running
 
 #: The six pick-and-place tasks of libero_goal that "scripted-pick-place" solves.
 PICK_PLACE_TASKS = (1, 2, 4, 6, 8, 9)
@@ -260,12 +261,8 @@ def collect(recipe: DataRecipe, out_path: str, log=print) -> dict:
                 try:
                     r = results.get(timeout=5)
                 except Exception:  # noqa: BLE001 - queue.Empty
-                    dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
-                    if dead:
-                        raise RuntimeError(
-                            f"a demo process died (exit code {dead[0].exitcode}) with {len(todo) - done} episodes "
-                            f"left; the finished ones stay in {shard_dir}: rerun the same command to continue")
-                    if not any(p.is_alive() for p in procs):
+                    if not still_running(procs, "a demo process", len(todo) - done,
+                                         f"the finished ones stay in {shard_dir}: rerun the same command to continue"):
                         break
                     continue
                 done += 1

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from services.common.policies import DEFAULT_POLICY, EXECUTE_STEPS, checkpoint_dir, policy_env_config
 from services.common.progress import add_progress_option, progress
+from services.policy_worker.vla.procs import still_running
 from zetta_wire.stats import wilson
 
 
@@ -104,11 +105,8 @@ def evaluate(model: str, suite: str, tasks: list[int], seeds: list[int], out_pat
             try:
                 r = results.get(timeout=10)
             except Exception:  # noqa: BLE001 - queue.Empty
-                dead = [p for p in procs if not p.is_alive() and p.exitcode not in (0, None)]
-                if dead:
-                    raise RuntimeError(f"{suite}: an evaluation process died (exit code {dead[0].exitcode}) with "
-                                       f"{len(episodes) - len(rows)} episodes left; rerun the same command to continue")
-                if not any(p.is_alive() for p in procs):
+                if not still_running(procs, f"{suite}: an evaluation process", len(episodes) - len(rows),
+                                     "rerun the same command to continue"):
                     break
                 continue
             r.update(model=model, execute_steps=execute_steps, env=env or {})
