@@ -200,7 +200,7 @@ class Evolution:
         cur = self.state[task]
         dev = self.store.seeds(self.cfg.suite, task, DEV)
         rollouts = self._rollouts(self._keys(task, dev, cur.ref, "profile"), f"r{round_} {task} profile", round_)
-        prof = build_profile(self.store, rollouts, self.cfg.suite, task, cur.ref, self.cfg.gate.require_hand_back)
+        prof = build_profile(self.store, rollouts, self.cfg.suite, task, cur.ref, self.cfg.gate)
         t_profile = time.time()
         self.store.record("profile", {"suite": self.cfg.suite, "task": task, "round": round_, "harness": cur.ref or "bare",
                                       "successes": prof.successes, "episodes": len(rollouts),

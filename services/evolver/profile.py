@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from services.evolver.gate import GateParams
 from services.evolver.store import Rollout, RolloutStore
 from services.evolver.trace import STATE_DIM, Trace, relative_state
 
@@ -89,13 +90,13 @@ class Profile:
     rollouts: list[Rollout]
     index: SuccessIndex
     failures: list[Failure]
-    #: Only successes with the policy in control at the success step count (GateParams.require_hand_back).
-    require_hand_back: bool = False
+    #: What counts as a success (GateParams.require_hand_back).
+    gate: GateParams = GateParams()
 
     @property
     def successes(self) -> int:
-        """Successful rollouts (with ``require_hand_back``, only those the policy finished)."""
-        return sum(r.credited if self.require_hand_back else r.success for r in self.rollouts)
+        """Successful rollouts, as the gate counts them."""
+        return self.gate.successes(self.rollouts)[0]
 
     def manifest(self) -> dict[str, Any]:
         """The failed-seed manifest with m* per failure."""
@@ -105,9 +106,9 @@ class Profile:
 
 
 def build_profile(store: RolloutStore, rollouts: Sequence[Rollout], suite: str, task: str, harness: str,
-                  require_hand_back: bool = False) -> Profile:
-    """I_succ and M_fail from valid rollouts already in the store; with ``require_hand_back`` a
-    success an intervention finished is in neither."""
-    succ = [store.trace(r) for r in rollouts if (r.credited if require_hand_back else r.success)]
+                  gate: GateParams = GateParams()) -> Profile:
+    """I_succ and M_fail from valid rollouts already in the store; a success the ``gate`` does not
+    count (an intervention finished it, under ``require_hand_back``) is in neither."""
+    succ = [store.trace(r) for r in rollouts if gate.won(r)]
     failures = [Failure(r, r.first_missing or "<none>") for r in rollouts if not r.success]
-    return Profile(suite, task, harness, list(rollouts), SuccessIndex.build(succ), failures, require_hand_back)
+    return Profile(suite, task, harness, list(rollouts), SuccessIndex.build(succ), failures, gate)
